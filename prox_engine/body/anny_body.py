@@ -1,0 +1,397 @@
+"""The free default body model: anny 0.6.2 (Apache-2.0, MakeHuman data CC0).
+
+Parameters (all leaf tensors, batch first):
+- ``global_orient`` (B, 3) axis-angle and ``transl`` (B, 3): the root (pelvis) pose in the
+  fitting frame.
+- ``body_pose`` (B, len(BODY_BONES), 3): axis-angle in each bone's own frame
+  (``local-bone``: x = flexion for knees, elbows and spine, y = twist along the bone).
+- ``hand_pose`` (B, len(FINGER_BONES), 3): the same for the finger bones.
+- ``shape`` (B, 6): logits of the phenotype (gender, age, muscle, weight, height,
+  proportions), which anny clamps to [0, 1] with zero gradient, hence the sigmoid.
+"""
+from __future__ import annotations
+
+import math
+from functools import cached_property
+
+import numpy as np
+import torch
+
+from .. import assets
+from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle, vertex_normals
+from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
+from .base import BodyModel, BodyOutput, Params
+
+SIDES = ("L", "R")
+SPINE = ["spine05", "spine04", "spine03", "spine02", "spine01"]
+NECK = ["neck01", "neck02", "neck03", "head"]
+ARM = ["clavicle", "shoulder01", "upperarm01", "upperarm02", "lowerarm01", "lowerarm02",
+       "wrist"]
+LEG = ["upperleg01", "upperleg02", "lowerleg01", "lowerleg02", "foot"]
+BODY_BONES = SPINE + NECK + [f"{b}.{s}" for s in SIDES for b in ARM + LEG]
+FINGER_BONES = [f"{b}.{s}" for s in SIDES for b in
+                ["finger1-1", "finger1-2", "finger1-3", "metacarpal1", "finger2-1", "finger2-2",
+                 "finger2-3", "metacarpal2", "finger3-1", "finger3-2", "finger3-3",
+                 "metacarpal3", "finger4-1", "finger4-2", "finger4-3", "metacarpal4",
+                 "finger5-1", "finger5-2", "finger5-3"]]
+PHENOTYPES = ["gender", "age", "muscle", "weight", "height", "proportions"]
+
+# Anatomical limits (radians) of each bone's axis-angle components (x, y, z) in its own
+# frame; signs measured on anny: hip flexion is -x, knee, elbow and trunk flexion +x,
+# shoulder flexion +x, arm down toward the body -z on the left and +z on the right.
+_LIMITS = {
+    "spine": ((-0.25, -0.25, -0.2), (0.45, 0.25, 0.2)),
+    "neck": ((-0.35, -0.45, -0.3), (0.4, 0.45, 0.3)),
+    "head": ((-0.5, -0.6, -0.4), (0.5, 0.6, 0.4)),
+    "clavicle": ((-0.3, -0.3, -0.3), (0.3, 0.3, 0.3)),
+    "shoulder01": ((-0.3, -0.3, -0.3), (0.3, 0.3, 0.3)),
+    "upperarm01.L": ((-1.2, -1.0, -0.9), (2.8, 1.0, 2.5)),
+    "upperarm01.R": ((-1.2, -1.0, -2.5), (2.8, 1.0, 0.9)),
+    "upperarm02": ((-0.15, -1.3, -0.15), (0.15, 1.3, 0.15)),
+    "lowerarm01": ((-0.05, -0.2, -0.15), (2.6, 0.2, 0.15)),
+    "lowerarm02": ((-0.1, -1.5, -0.1), (0.1, 1.5, 0.1)),
+    "wrist": ((-1.2, -0.3, -0.6), (1.2, 0.3, 0.6)),
+    "upperleg01": ((-2.3, -0.5, -0.8), (0.5, 0.5, 0.8)),
+    "upperleg02": ((-0.1, -0.6, -0.1), (0.1, 0.6, 0.1)),
+    "lowerleg01": ((-0.05, -0.2, -0.1), (2.6, 0.2, 0.1)),
+    "lowerleg02": ((-0.1, -0.4, -0.1), (0.1, 0.4, 0.1)),
+    "foot": ((-0.8, -0.3, -0.4), (0.6, 0.3, 0.4)),
+}
+# COCO-23 regressor labels (anny) in BODY_25 order; neck and mid-hip are means of pairs.
+_BODY25_FROM_COCO = {
+    0: "nose", 2: "right_shoulder", 3: "right_elbow", 4: "right_wrist", 5: "left_shoulder",
+    6: "left_elbow", 7: "left_wrist", 9: "right_hip", 10: "right_knee", 11: "right_ankle",
+    12: "left_hip", 13: "left_knee", 14: "left_ankle", 15: "right_eye", 16: "left_eye",
+    17: "right_ear", 18: "left_ear", 19: "left_big_toe", 20: "left_small_toe",
+    21: "left_heel", 22: "right_big_toe", 23: "right_small_toe", 24: "right_heel",
+}
+ADULT_AGE_YEARS = 35.0
+
+
+def _limit_key(bone: str) -> str:
+    if bone in _LIMITS:
+        return bone
+    base = bone.split(".")[0]
+    if base.startswith("spine"):
+        return "spine"
+    if base.startswith("neck"):
+        return "neck"
+    return base
+
+
+class AnnyBody(BodyModel):
+    """anny with a fitted subset of bones; see the module docstring for the parameters."""
+
+    name = "anny"
+
+    def __init__(self, model: torch.nn.Module, age_years: float = ADULT_AGE_YEARS) -> None:
+        super().__init__()
+        import anny
+        from anny.shape_distribution import SimpleShapeDistribution
+
+        self.model = model
+        labels = list(model.bone_labels)
+        self.bone_labels = labels
+        self.register_buffer("body_index", torch.tensor([labels.index(b) for b in BODY_BONES]))
+        self.register_buffer("hand_index", torch.tensor([labels.index(b) for b in FINGER_BONES]))
+        self.faces = model.get_triangular_faces().long()
+        lo, hi = zip(*(_LIMITS[_limit_key(b)] for b in BODY_BONES))
+        self.register_buffer("limit_lo", torch.tensor(lo, dtype=torch.float32))
+        self.register_buffer("limit_hi", torch.tensor(hi, dtype=torch.float32))
+        self.register_buffer("flexion_index", torch.tensor(
+            [BODY_BONES.index(f"{b}.{s}") for s in SIDES for b in ("lowerarm01", "lowerleg01")]))
+
+        # Shape prior: anny's age-conditioned phenotype distribution, at an adult age.
+        self.shape_distribution = SimpleShapeDistribution(model)
+        age = self.shape_distribution.morphological_age_mapping.morphological_to_anny_age(
+            torch.tensor([age_years]))
+        self.register_buffer("prior_age", age)
+        mean = torch.tensor([[0.5, float(age), 0.5, 0.5, 0.5, 0.5]])
+        self.register_buffer("shape_init", torch.logit(mean.clamp(1e-3, 1 - 1e-3)))
+
+        regressor = anny.KeypointsRegressor.coco(model)
+        weights = torch.zeros(N_KEYPOINTS, len(model.template_vertices))
+        for index, label in _BODY25_FROM_COCO.items():
+            weights[index] = regressor.regression_weights[regressor.labels.index(label)]
+        weights[1] = (weights[2] + weights[5]) / 2  # neck: mid-shoulders
+        weights[8] = (weights[9] + weights[12]) / 2  # mid-hip
+        self.register_buffer("keypoint_weights", weights[BODY])
+        self._setup_static_geometry()
+
+    @classmethod
+    def load(cls, age_years: float = ADULT_AGE_YEARS) -> "AnnyBody":
+        """Load the model baked by ``prox setup`` (fast; never builds or downloads)."""
+        path = assets.anny_model_path()
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: anny model data missing; run 'prox setup' first")
+        assets.configure_warp()
+        import anny
+        from anny.models.model_data import ModelData
+
+        model = anny.Anny.from_model_data(
+            ModelData.load_safetensors(str(path)), pose_parameterization="local-bone",
+            bone_orientation="cached", root_identity_orientation=False).to(torch.float32)
+        model.requires_grad_(False)
+        return cls(model, age_years)
+
+    # ----------------------------------------------------------------- static geometry
+    def _setup_static_geometry(self) -> None:
+        """Contact sets, parts, hand keypoints and collision spheres from the rest body."""
+        with torch.no_grad():
+            rest = self.model(None, {"age": float(self.prior_age)})
+        vertices = rest["rest_vertices"][0]
+        poses = rest["rest_bone_poses"][0]
+        normals = vertex_normals(vertices[None], self.faces)[0]
+        dominant = self.model.vertex_bone_indices.gather(
+            1, self.model.vertex_bone_weights.argmax(1, keepdim=True))[:, 0]
+        bone_of = np.asarray(self.bone_labels)[dominant.numpy()]
+
+        main = _largest_component(self.faces.numpy(), len(vertices))
+        self.scene_vertices = torch.from_numpy(main)
+        parts = np.array(["torso"] * len(vertices), dtype=object)
+        for side, name in (("L", "left"), ("R", "right")):
+            parts[np.char.endswith(bone_of.astype(str), f".{side}")] = f"{name}_limb"
+        self._label_parts(parts, bone_of)
+        parts[~main] = "eyes_tongue"
+        self.vertex_parts = parts.tolist()
+
+        z, ny, nz = vertices[:, 2].numpy(), normals[:, 1].numpy(), normals[:, 2].numpy()
+        hip_z = float(poses[self.bone_labels.index("upperleg01.L"), 2, 3])
+        knee_z = float(poses[self.bone_labels.index("lowerleg01.L"), 2, 3])
+        is_ = lambda *names: np.isin(bone_of, names)  # noqa: E731
+        contact = {
+            "left_hand": (parts == "left_hand"),
+            "right_hand": (parts == "right_hand"),
+            "left_foot": (parts == "left_foot") & (nz < -0.5),
+            "right_foot": (parts == "right_foot") & (nz < -0.5),
+            "back": is_(*SPINE) & (ny > 0.6) & (z > hip_z + 0.12),
+            "gluteus": (ny > 0.4) & (z < hip_z + 0.08) & (z > hip_z - 0.16)
+            & is_("root", "pelvis.L", "pelvis.R", "upperleg01.L", "upperleg01.R", "spine05"),
+            "thighs": is_("upperleg01.L", "upperleg01.R", "upperleg02.L", "upperleg02.R")
+            & (ny > 0.5) & (z < hip_z - 0.16) & (z > knee_z + 0.08),
+        }
+        self.contact_parts = {k: torch.from_numpy(np.flatnonzero(v & main)) for k, v in
+                              contact.items()}
+
+        # Hand keypoints: wrist head, then per finger the heads of its three phalanges and
+        # the fingertip vertex (the finger3 vertex farthest along its bone).
+        hand_bones, tips = [], []
+        for side in SIDES:
+            hand_bones.append(f"wrist.{side}")
+            for f in range(1, 6):
+                hand_bones += [f"finger{f}-{k}.{side}" for k in (1, 2, 3)]
+                bone = f"finger{f}-3.{side}"
+                pose = poses[self.bone_labels.index(bone)]
+                along = (vertices - pose[:3, 3]) @ pose[:3, 1]
+                along[torch.from_numpy(bone_of != bone)] = -math.inf
+                tips.append(int(along.argmax()))
+        self.register_buffer("hand_heads", torch.tensor(
+            [self.bone_labels.index(b) for b in hand_bones]))
+        self.register_buffer("fingertips", torch.tensor(tips))
+        self._setup_spheres(vertices, poses, bone_of)
+
+    def _label_parts(self, parts: np.ndarray, bone_of: np.ndarray) -> None:
+        from anny.face_segmentation import get_face_segmentation_mask
+
+        faces = self.faces.numpy()
+        for label, name in (("hand.L", "left_hand"), ("hand.R", "right_hand"),
+                            ("foot.L", "left_foot"), ("foot.R", "right_foot"),
+                            ("head", "head")):
+            mask = get_face_segmentation_mask(self.model, [label]).numpy()
+            parts[np.unique(faces[mask])] = name
+        for bone, name in (("upperleg", "thigh"), ("lowerleg", "shin"),
+                           ("upperarm", "upper_arm"), ("lowerarm", "forearm")):
+            for side, side_name in (("L", "left"), ("R", "right")):
+                sel = np.char.startswith(bone_of.astype(str), bone) & np.char.endswith(
+                    bone_of.astype(str), f".{side}") & (parts == f"{side_name}_limb")
+                parts[sel] = f"{side_name}_{name}"
+        parts[np.isin(parts, ["left_limb", "right_limb"])] = "torso"
+
+    def _setup_spheres(self, vertices: torch.Tensor, poses: torch.Tensor,
+                       bone_of: np.ndarray) -> None:
+        """Spheres inside arms, legs and torso; pairs that are apart at rest may not meet."""
+        centres, radii, bones, groups = [], [], [], []
+
+        def chain(group: str, head: str, tail: str, members: list[str], count: int) -> None:
+            a = poses[self.bone_labels.index(head), :3, 3]
+            b = poses[self.bone_labels.index(tail), :3, 3]
+            sel = torch.from_numpy(np.isin(bone_of, members))
+            for t in (np.arange(count) + 0.5) / count:
+                c = a + (b - a) * float(t)
+                d = (vertices[sel] - c).norm(dim=1)
+                axis = (b - a) / (b - a).norm()
+                ring = ((vertices[sel] - c) @ axis).abs() < (b - a).norm() / (2 * count)
+                r = float(d[ring].median()) * 0.85 if ring.any() else float(d.min())
+                centres.append(c)
+                radii.append(r)
+                bones.append(self.bone_labels.index(head))
+                groups.append(group)
+
+        for s in SIDES:
+            chain(f"arm.{s}", f"upperarm01.{s}", f"lowerarm01.{s}",
+                  [f"upperarm01.{s}", f"upperarm02.{s}"], 3)
+            chain(f"arm.{s}", f"lowerarm01.{s}", f"wrist.{s}",
+                  [f"lowerarm01.{s}", f"lowerarm02.{s}"], 3)
+            chain(f"leg.{s}", f"upperleg01.{s}", f"lowerleg01.{s}",
+                  [f"upperleg01.{s}", f"upperleg02.{s}"], 4)
+            chain(f"leg.{s}", f"lowerleg01.{s}", f"foot.{s}",
+                  [f"lowerleg01.{s}", f"lowerleg02.{s}"], 4)
+        # Torso: a column of three spheres (left, centre, right) per spine bone.
+        for bone in SPINE:
+            sel = torch.from_numpy(bone_of == bone)
+            if not sel.any():
+                continue
+            pts = vertices[sel]
+            lo, hi = pts.min(0).values, pts.max(0).values
+            r = float(hi[1] - lo[1]) / 2 * 0.85
+            mid = (lo + hi) / 2
+            half = max(float(hi[0] - lo[0]) / 2 - r, 0.0)
+            for dx in (-half, 0.0, half):
+                centres.append(mid + torch.tensor([dx, 0.0, 0.0]))
+                radii.append(r)
+                bones.append(self.bone_labels.index(bone))
+                groups.append("torso")
+        centres_t = torch.stack(centres)
+        local = torch.einsum("sij,sj->si", torch.linalg.inv(poses[bones]),
+                             torch.cat([centres_t, torch.ones(len(centres), 1)], 1))
+        self.register_buffer("sphere_local", local)  # homogeneous, in the bone's rest frame
+        self.register_buffer("sphere_radius", torch.tensor(radii))
+        self.register_buffer("sphere_bone", torch.tensor(bones))
+        allowed = {("arm.L", "torso"), ("arm.R", "torso"), ("leg.L", "leg.R")}
+        dist = torch.cdist(centres_t, centres_t)
+        rad = self.sphere_radius[:, None] + self.sphere_radius[None]
+        pairs = [(i, j) for i in range(len(groups)) for j in range(i + 1, len(groups))
+                 if tuple(sorted((groups[i], groups[j]))) in allowed
+                 and dist[i, j] > rad[i, j] + 0.02]
+        self.collision_pairs = torch.tensor(pairs, dtype=torch.long)
+
+    # ----------------------------------------------------------------- parameters
+    def init_params(self, batch_size: int) -> Params:
+        def zeros(*shape: int) -> torch.Tensor:
+            return torch.zeros(batch_size, *shape)
+
+        return {
+            "global_orient": zeros(3), "transl": zeros(3),
+            "body_pose": zeros(len(BODY_BONES), 3), "hand_pose": zeros(len(FINGER_BONES), 3),
+            "shape": self.shape_init.repeat(batch_size, 1),
+        }
+
+    def shape_group(self) -> list[str]:
+        return ["shape"]
+
+    def up_axis(self) -> torch.Tensor:
+        return torch.tensor([0.0, 0.0, 1.0])
+
+    def forward_axis(self) -> torch.Tensor:
+        return torch.tensor([0.0, -1.0, 0.0])
+
+    # ----------------------------------------------------------------- forward
+    def _pose_matrices(self, params: Params) -> torch.Tensor:
+        batch = params["transl"].shape[0]
+        pose = torch.eye(4).repeat(batch, len(self.bone_labels), 1, 1)
+        pose[:, 0, :3, :3] = axis_angle_to_matrix(params["global_orient"])
+        pose[:, 0, :3, 3] = params["transl"]
+        pose[:, self.body_index, :3, :3] = axis_angle_to_matrix(params["body_pose"])
+        pose[:, self.hand_index, :3, :3] = axis_angle_to_matrix(params["hand_pose"])
+        return pose
+
+    def rest(self, shape: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Rest vertices and bone poses for shape logits (cached while shape is frozen)."""
+        cached = getattr(self, "_rest_cache", None)
+        frozen = not shape.requires_grad
+        if frozen and cached is not None and torch.equal(cached[0], shape):
+            return cached[1]
+        phenotype = torch.sigmoid(shape)
+        coeffs = self.model._get_phenotype_blendshape_coefficients(
+            phenotype, phenotype.new_zeros(phenotype.shape[0], 0),
+            phenotype.new_zeros(phenotype.shape[0], 0))
+        rest = self.model.get_rest_model(coeffs)
+        if frozen:
+            self._rest_cache = (shape.detach().clone(), rest)
+        return rest
+
+    def forward(self, params: Params) -> BodyOutput:
+        rest = self.rest(params["shape"])
+        pose = self._pose_matrices(params)
+        transforms, bone_poses = self.model.get_bone_transforms(pose, rest["rest_bone_poses"])
+        vertices = self.model.get_skinned_vertices(
+            rest["rest_vertices"].expand(pose.shape[0], -1, -1), transforms)
+        keypoints = vertices.new_zeros(vertices.shape[0], N_KEYPOINTS, 3)
+        keypoints[:, BODY] = torch.einsum("kv,bvd->bkd", self.keypoint_weights, vertices)
+        heads = bone_poses[:, self.hand_heads, :3, 3]  # (B, 2 * 16, 3)
+        tips = vertices[:, self.fingertips]  # (B, 10, 3)
+        for side, slot in enumerate((LEFT_HAND, RIGHT_HAND)):
+            h = heads[:, side * 16:(side + 1) * 16]
+            t = tips[:, side * 5:(side + 1) * 5]
+            fingers = torch.cat([h[:, 1:].reshape(-1, 5, 3, 3), t[:, :, None]], 2)
+            keypoints[:, slot] = torch.cat([h[:, :1], fingers.reshape(-1, 20, 3)], 1)
+        centres = torch.einsum("bsij,sj->bsi", bone_poses[:, self.sphere_bone, :3, :],
+                               self.sphere_local)
+        spheres = torch.cat([centres, self.sphere_radius.expand(centres.shape[0], -1)[..., None]],
+                            -1)
+        return BodyOutput(vertices=vertices, keypoints=keypoints, spheres=spheres)
+
+    @property
+    def keypoint_mask(self) -> torch.Tensor:
+        mask = torch.zeros(N_KEYPOINTS, dtype=torch.bool)
+        mask[BODY] = True
+        mask[LEFT_HAND] = True
+        mask[RIGHT_HAND] = True
+        return mask
+
+    # ----------------------------------------------------------------- priors
+    def pose_prior(self, params: Params) -> torch.Tensor:
+        pose = params["body_pose"]
+        outside = torch.relu(pose - self.limit_hi) + torch.relu(self.limit_lo - pose)
+        return (pose ** 2).sum((1, 2)) + 100.0 * (outside ** 2).sum((1, 2))
+
+    def bending_prior(self, params: Params) -> torch.Tensor:
+        flexion = params["body_pose"][:, self.flexion_index, 0]
+        return torch.exp(-flexion).sum(1)
+
+    def hand_prior(self, params: Params) -> torch.Tensor:
+        return (params["hand_pose"] ** 2).sum((1, 2))
+
+    def shape_prior(self, params: Params) -> torch.Tensor:
+        """-log p(phenotype | adult age) under anny's calibrated Beta distributions."""
+        p = torch.sigmoid(params["shape"]).clamp(1e-3, 1 - 1e-3)
+        gender, age = p[:, 0], p[:, 1]
+        d = self.shape_distribution
+        nll = ((age - self.prior_age) / 0.05) ** 2 / 2
+        for column, name in ((4, "height"), (3, "weight"), (2, "muscle"), (5, "proportions")):
+            boys = getattr(d, f"boys_conditional_{name}_distribution").get_torch_distribution(
+                age.clamp(0, 1))
+            girls = getattr(d, f"girls_conditional_{name}_distribution").get_torch_distribution(
+                age.clamp(0, 1))
+            value = p[:, column]
+            nll = nll - ((1 - gender) * boys.log_prob(value) + gender * girls.log_prob(value))
+        return nll
+
+    # ----------------------------------------------------------------- export
+    def export(self, params: Params, index: int) -> dict:
+        def aa(value: torch.Tensor) -> list:
+            return value[index].detach().tolist()
+
+        return {
+            "model": "anny", "model_version": "0.6.2",
+            "global_orient": aa(params["global_orient"]), "transl": aa(params["transl"]),
+            "body_pose": dict(zip(BODY_BONES, aa(params["body_pose"]))),
+            "hand_pose": dict(zip(FINGER_BONES, aa(params["hand_pose"]))),
+            "phenotype": dict(zip(PHENOTYPES, torch.sigmoid(params["shape"][index]).tolist())),
+            "pose_parameterization": "local-bone axis-angle",
+        }
+
+
+def _largest_component(faces: np.ndarray, count: int) -> np.ndarray:
+    """Mask of the vertices in the largest connected part of the mesh."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(count, count))
+    _, labels = connected_components(graph, directed=False)
+    return labels == np.bincount(labels).argmax()
+
+
+__all__ = ["AnnyBody", "BODY_BONES", "FINGER_BONES", "matrix_to_axis_angle"]

@@ -1,0 +1,74 @@
+"""The body-model interface the fitter relies on; anny and SMPL-X implement it."""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import torch
+
+Params = dict[str, torch.Tensor]
+
+
+@dataclass
+class BodyOutput:
+    """A batch of posed bodies in the fitting frame (camera coordinates)."""
+
+    vertices: torch.Tensor  # (B, V, 3)
+    keypoints: torch.Tensor  # (B, 118, 3), OpenPose order (see prox_engine.keypoints)
+    spheres: torch.Tensor | None = None  # (B, S, 4) collision proxies: centre, radius
+
+
+class BodyModel(ABC, torch.nn.Module):
+    """Parameters -> vertices, faces, OpenPose-ordered keypoints, contact sets, part labels."""
+
+    name: str
+    faces: torch.Tensor  # (F, 3) int64
+    keypoint_mask: torch.Tensor  # (118,) bool: which OpenPose points the model defines
+    contact_parts: dict[str, torch.Tensor]  # part name -> vertex indices
+    vertex_parts: list[str]  # per-vertex part label
+    scene_vertices: torch.Tensor  # (V,) bool: vertices used by scene terms (no eyes/tongue)
+    collision_pairs: torch.Tensor  # (P, 2) sphere index pairs that must not overlap
+
+    @abstractmethod
+    def init_params(self, batch_size: int) -> Params:
+        """Parameters of a neutral body at the origin, as leaf tensors."""
+
+    @abstractmethod
+    def forward(self, params: Params) -> BodyOutput:
+        """Pose the body."""
+
+    @abstractmethod
+    def pose_prior(self, params: Params) -> torch.Tensor:
+        """(B,) penalty of implausible body poses."""
+
+    @abstractmethod
+    def bending_prior(self, params: Params) -> torch.Tensor:
+        """(B,) penalty of elbows and knees bent the wrong way."""
+
+    @abstractmethod
+    def hand_prior(self, params: Params) -> torch.Tensor:
+        """(B,) penalty of finger articulation."""
+
+    @abstractmethod
+    def shape_prior(self, params: Params) -> torch.Tensor:
+        """(B,) negative log-likelihood of the body shape."""
+
+    @abstractmethod
+    def up_axis(self) -> torch.Tensor:
+        """The model's up direction in its own (unposed root) frame, (3,)."""
+
+    @abstractmethod
+    def forward_axis(self) -> torch.Tensor:
+        """The direction the model faces in its own frame, (3,)."""
+
+    @abstractmethod
+    def export(self, params: Params, index: int) -> dict:
+        """JSON-ready parameters of one batch element."""
+
+    @abstractmethod
+    def shape_group(self) -> list[str]:
+        """Names of the parameters that describe body shape (frozen in sequence mode)."""
+
+    @property
+    def num_vertices(self) -> int:
+        return len(self.vertex_parts)

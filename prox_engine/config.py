@@ -1,0 +1,90 @@
+"""Fitting configurations: named YAML files in ``prox_engine/configs`` or a user's file."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import yaml
+
+from .errors import InputError
+
+CONFIG_DIR = Path(__file__).parent / "configs"
+TERMS = ("body", "hands", "face", "pose_prior", "shape", "bending", "hand_prior",
+         "self_penetration", "penetration", "contact", "depth", "temporal")
+
+
+@dataclass
+class Stage:
+    """Weights of each term in one annealing stage (0 switches a term off)."""
+
+    name: str
+    weights: dict[str, float]
+    optimize_shape: bool = True
+    optimize_hands: bool = False
+
+
+@dataclass
+class FitConfig:
+    name: str
+    stages: list[Stage]
+    description: str = ""
+    data_rho: float = 100.0  # Geman-McClure scale of the reprojection error (pixels)
+    ignore_keypoints: list[int] = field(default_factory=lambda: [1, 9, 12])
+    init_depth_weight: float = 100.0  # camera stage: keep the similar-triangles depth
+    flip_shoulder_px: float = 25.0  # try the 180-degree-turned body below this 2D width
+    max_iter: int = 30  # L-BFGS iterations per call
+    max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
+    ftol: float = 1e-5
+    contact_rho: float = 0.05
+    contact_max_angle: float = 45.0
+    contact_max_distance: float = 0.15  # vertices farther than this are not attracted
+    contact_parts: list[str] = field(default_factory=lambda: [
+        "left_hand", "right_hand", "left_foot", "right_foot", "back", "gluteus", "thighs"])
+    depth_rho: float = 0.05
+    depth_max_points: int = 1500
+    sequence_stages: list[int] = field(default_factory=lambda: [-1])
+    batch_size: int = 1
+    flip: bool = False  # mirror Kinect images and depth (not keypoints) as PROX does
+    sdf_dim: int = 256
+
+    def uses(self, term: str) -> bool:
+        return any(stage.weights.get(term, 0) > 0 for stage in self.stages)
+
+
+def load_config(name_or_path: str | Path) -> FitConfig:
+    """Load ``rgb``, ``prox``, ``smplifyd``, ``proxd`` or a YAML file path."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = CONFIG_DIR / f"{name_or_path}.yaml"
+        if not path.exists():
+            known = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
+            raise InputError(name_or_path, f"unknown configuration (known: {known})")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except FileNotFoundError as exc:
+        raise InputError(path, "configuration file not found") from exc
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"invalid YAML ({exc})") from exc
+    if not isinstance(raw, dict) or not isinstance(raw.get("stages"), list) or not raw["stages"]:
+        raise InputError(path, "configuration needs a non-empty 'stages' list")
+    stages = []
+    for i, entry in enumerate(raw.pop("stages")):
+        if not isinstance(entry, dict):
+            raise InputError(path, f"stage {i} must be a mapping")
+        entry = dict(entry)
+        name = str(entry.pop("name", f"stage{i}"))
+        shape = bool(entry.pop("optimize_shape", True))
+        hands = bool(entry.pop("optimize_hands", False))
+        unknown = set(entry) - set(TERMS)
+        if unknown:
+            raise InputError(path, f"stage {name}: unknown terms {sorted(unknown)}")
+        try:
+            weights = {k: float(v) for k, v in entry.items()}
+        except (TypeError, ValueError) as exc:
+            raise InputError(path, f"stage {name}: weights must be numbers") from exc
+        stages.append(Stage(name, weights, shape, hands))
+    known = {f.name for f in fields(FitConfig)} - {"stages", "name"}
+    unknown = set(raw) - known
+    if unknown:
+        raise InputError(path, f"unknown settings {sorted(unknown)}")
+    return FitConfig(name=path.stem, stages=stages, **raw)

@@ -1,0 +1,166 @@
+"""Reading the PROX dataset layout.
+
+``BASE/recordings/<rec>/``, ``BASE/keypoints/<rec>/<frame>_keypoints.json``,
+``BASE/calibration/Color.json``, ``BASE/cam2world/<Scene>.json``, ``BASE/scenes/<Scene>.ply``,
+optional ``BASE/sdf/<Scene>.json`` + ``<Scene>_sdf.npy`` and ``recordings/<rec>/{Color,Depth,
+BodyIndex}/<frame>.{jpg,png}``. ``<Scene>`` is the recording name up to its first underscore.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera
+from .errors import InputError
+
+KEYPOINT_SUFFIX = "_keypoints.json"
+
+
+@dataclass
+class Recording:
+    """Paths of one recording of a PROX-layout base directory."""
+
+    base: Path
+    name: str
+
+    @property
+    def scene_name(self) -> str:
+        return self.name.split("_", 1)[0]
+
+    @property
+    def keypoint_dir(self) -> Path:
+        return self.base / "keypoints" / self.name
+
+    @property
+    def recording_dir(self) -> Path:
+        return self.base / "recordings" / self.name
+
+    @property
+    def scene_path(self) -> Path:
+        return self.base / "scenes" / f"{self.scene_name}.ply"
+
+    @property
+    def cam2world_path(self) -> Path:
+        return self.base / "cam2world" / f"{self.scene_name}.json"
+
+    @property
+    def calibration_path(self) -> Path:
+        return self.base / "calibration" / "Color.json"
+
+    @property
+    def sdf_paths(self) -> tuple[Path, Path]:
+        return (self.base / "sdf" / f"{self.scene_name}.json",
+                self.base / "sdf" / f"{self.scene_name}_sdf.npy")
+
+    def frames(self) -> list[str]:
+        """Frame names (keypoint file names without the suffix), sorted."""
+        if not self.keypoint_dir.is_dir():
+            raise InputError(self.keypoint_dir, "keypoint folder not found")
+        return sorted(p.name[: -len(KEYPOINT_SUFFIX)] for p in self.keypoint_dir.iterdir()
+                      if p.name.endswith(KEYPOINT_SUFFIX))
+
+    def keypoint_path(self, frame: str) -> Path:
+        return self.keypoint_dir / f"{frame}{KEYPOINT_SUFFIX}"
+
+    def image_path(self, frame: str) -> Path | None:
+        for ext in (".jpg", ".png"):
+            path = self.recording_dir / "Color" / f"{frame}{ext}"
+            if path.exists():
+                return path
+        return None
+
+    def depth_paths(self, frame: str) -> tuple[Path, Path] | None:
+        depth = self.recording_dir / "Depth" / f"{frame}.png"
+        mask = self.recording_dir / "BodyIndex" / f"{frame}.png"
+        return (depth, mask) if depth.exists() and mask.exists() else None
+
+
+def list_recordings(base: Path) -> list[str]:
+    """Recording names: the folders under ``BASE/keypoints``."""
+    folder = Path(base) / "keypoints"
+    if not folder.is_dir():
+        raise InputError(folder, "keypoint folder not found (expected BASE/keypoints/<rec>/)")
+    names = sorted(p.name for p in folder.iterdir() if p.is_dir())
+    if not names:
+        raise InputError(folder, "no recordings (no sub-folders)")
+    return names
+
+
+def _read_json(path: Path) -> object:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError as exc:
+        raise InputError(path, "file not found") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"not valid JSON ({exc})") from exc
+
+
+def _numbers(path: Path, value: object, name: str, count: int | None = None) -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"'{name}' must be a list of numbers") from exc
+    if count is not None and array.size != count:
+        raise InputError(path, f"'{name}' must have {count} numbers, got {array.size}")
+    if not np.isfinite(array).all():
+        raise InputError(path, f"'{name}' contains NaN or infinite values")
+    return array
+
+
+def load_calibration(path: Path) -> Camera:
+    """``Color.json`` with ``f`` [fx, fy], ``c`` [cx, cy] and optional ``k`` distortion."""
+    data = _read_json(path)
+    if not isinstance(data, dict) or "f" not in data or "c" not in data:
+        raise InputError(path, "calibration needs 'f' [fx, fy] and 'c' [cx, cy]")
+    f = _numbers(path, data["f"], "f")
+    if f.size == 1:
+        f = np.repeat(f, 2)
+    if f.size != 2 or (f <= 0).any():
+        raise InputError(path, "'f' must be one or two positive focal lengths in pixels")
+    c = _numbers(path, data["c"], "c", 2)
+    k = _numbers(path, data.get("k", []), "k") if data.get("k") is not None else np.zeros(0)
+    if k.size > 5:
+        k = k[:5]
+    size = data.get("size") or data.get("resolution")
+    width = height = None
+    if size is not None:
+        wh = _numbers(path, size, "size", 2)
+        width, height = int(wh[0]), int(wh[1])
+    return Camera(float(f[0]), float(f[1]), float(c[0]), float(c[1]), k.tolist(), width, height)
+
+
+def load_cam2world(path: Path) -> np.ndarray:
+    """A 4x4 rigid camera-to-world matrix; rejects non-rigid or singular ones."""
+    matrix = _numbers(path, _read_json(path), "cam2world", 16).reshape(4, 4)
+    rotation = matrix[:3, :3]
+    det = np.linalg.det(rotation)
+    if abs(det) < 1e-6:
+        raise InputError(path, "cam2world is singular")
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-3) or det < 0:
+        raise InputError(path, "cam2world rotation is not a proper rotation (orthonormal, det +1)")
+    if not np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-6):
+        raise InputError(path, "cam2world last row must be [0, 0, 0, 1]")
+    return matrix
+
+
+def load_scene_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (N, 3) float64 and triangles (M, 3) int64 of a scene scan."""
+    import trimesh
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "scene mesh not found")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise InputError(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    if len(faces) == 0 or len(vertices) == 0:
+        raise InputError(path, "mesh has no triangles")
+    if not np.isfinite(vertices).all():
+        raise InputError(path, "mesh has NaN or infinite vertex coordinates")
+    return vertices, faces

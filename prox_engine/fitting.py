@@ -1,0 +1,270 @@
+"""The annealed PROX optimisation: initialisation, camera stage, weighted stages (L-BFGS
+with strong Wolfe line search), for a batch of frames or warm-started from a previous fit."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from . import losses
+from .body.base import BodyModel, BodyOutput, Params
+from .camera import Camera
+from .config import FitConfig, Stage
+from .geometry import matrix_to_axis_angle
+from .keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND, SHOULDERS, TORSO_EDGES, Keypoints
+from .scene import Scene
+
+CAMERA_STAGE_KEYPOINTS = [2, 5, 9, 12]  # shoulders and hips
+
+
+@dataclass
+class Frame:
+    """What the fitter reads for one image."""
+
+    name: str
+    keypoints: Keypoints
+    depth_points: torch.Tensor | None = None  # (N, 3) camera-frame body points
+
+
+@dataclass
+class FitResult:
+    name: str
+    params: Params  # batch of one, detached
+    vertices: torch.Tensor  # (V, 3) camera frame
+    keypoints: torch.Tensor  # (118, 3) camera frame
+    losses: dict[str, float]  # weighted value of each term at the end
+    seconds: float
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+
+class Fitter:
+    """Fits one body model to frames seen by one camera, optionally inside a scene."""
+
+    def __init__(self, body: BodyModel, camera: Camera, config: FitConfig,
+                 scene: Scene | None = None) -> None:
+        needs_scene = config.uses("penetration") or config.uses("contact")
+        if needs_scene and scene is None:
+            raise ValueError(f"configuration '{config.name}' needs a scene")
+        self.body, self.camera, self.config, self.scene = body, camera, config, scene
+        parts = [body.contact_parts[p] for p in config.contact_parts if p in body.contact_parts]
+        self.contact_ids = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.long)
+        self.evaluations = 0  # objective evaluations so far, for benchmarks
+
+    # ------------------------------------------------------------------ public API
+    def fit(self, frames: list[Frame], warm_start: Params | None = None,
+            previous_keypoints: torch.Tensor | None = None) -> list[FitResult]:
+        """Fit a batch of frames: from scratch with every stage, or (sequence mode) from
+        ``warm_start`` with the configuration's sequence stages and the temporal term."""
+        start = time.perf_counter()
+        target, conf = self._targets(frames)
+        depth = [f.depth_points for f in frames]
+        has_hands = any(f.keypoints.has_hands for f in frames)
+        stage_seconds: dict[str, float] = {}
+        if warm_start is None:
+            params = self._initialise(frames, target, conf)
+            stage_seconds["camera"] = time.perf_counter() - start
+            stages = self.config.stages
+            frozen_shape = False
+        else:
+            params = {k: v.detach().clone().expand(len(frames), *v.shape[1:]).contiguous()
+                      for k, v in warm_start.items()}
+            stages = [self.config.stages[i] for i in self.config.sequence_stages]
+            frozen_shape = True
+        final: dict[str, torch.Tensor] = {}
+        for stage in stages:
+            t0 = time.perf_counter()
+            free = ["transl", "global_orient", "body_pose"]
+            if stage.optimize_shape and not frozen_shape:
+                free += self.body.shape_group()
+            if stage.optimize_hands and has_hands:
+                free.append("hand_pose")
+            final = self._run_stage(stage, params, free, target, conf, depth,
+                                    previous_keypoints)
+            stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
+                time.perf_counter() - t0)
+        with torch.no_grad():
+            out = self.body(params)
+        elapsed = (time.perf_counter() - start) / len(frames)
+        return [FitResult(
+            name=f.name, params={k: v[i:i + 1].detach().clone() for k, v in params.items()},
+            vertices=out.vertices[i].detach(), keypoints=out.keypoints[i].detach(),
+            losses={k: float(v[i]) for k, v in final.items()}, seconds=elapsed,
+            stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()})
+            for i, f in enumerate(frames)]
+
+    # ------------------------------------------------------------------ objective
+    def _targets(self, frames: list[Frame]) -> tuple[torch.Tensor, torch.Tensor]:
+        data = torch.tensor(np.stack([f.keypoints.data for f in frames]), dtype=torch.float32)
+        conf = data[..., 2] * self.body.keypoint_mask
+        conf[:, self.config.ignore_keypoints] = 0
+        return data[..., :2], conf
+
+    def _terms(self, stage: Stage, out: BodyOutput, params: Params, target: torch.Tensor,
+               conf: torch.Tensor, depth: list, previous: torch.Tensor | None
+               ) -> dict[str, torch.Tensor]:
+        """Weighted value (B,) of every active term of a stage."""
+        w = stage.weights
+        cfg, body = self.config, self.body
+        joint_weight = torch.zeros_like(conf)
+        joint_weight[:, BODY] = w.get("body", 0)
+        joint_weight[:, LEFT_HAND] = w.get("hands", 0)
+        joint_weight[:, RIGHT_HAND] = w.get("hands", 0)
+        joint_weight[:, FACE] = w.get("face", 0)
+        terms = {"data": losses.keypoint_data(out, self.camera, target,
+                                              (joint_weight * conf) ** 2, cfg.data_rho)}
+        priors = {"pose_prior": body.pose_prior, "shape": body.shape_prior,
+                  "bending": body.bending_prior, "hand_prior": body.hand_prior}
+        for name, prior in priors.items():
+            if w.get(name, 0) > 0:
+                terms[name] = w[name] * prior(params)
+        if w.get("self_penetration", 0) > 0:
+            terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
+        if w.get("penetration", 0) > 0:
+            terms["penetration"] = w["penetration"] * losses.penetration(out, body, self.scene)
+        if w.get("contact", 0) > 0 and len(self.contact_ids):
+            terms["contact"] = w["contact"] * losses.contact(
+                out, body, self.scene, self.contact_ids, cfg.contact_rho,
+                cfg.contact_max_angle, cfg.contact_max_distance)
+        if w.get("depth", 0) > 0 and any(d is not None for d in depth):
+            terms["depth"] = w["depth"] * losses.depth_data(out, body, depth, cfg.depth_rho)
+        if w.get("temporal", 0) > 0 and previous is not None:
+            terms["temporal"] = w["temporal"] * losses.temporal(out, previous)
+        return terms
+
+    def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
+                   conf: torch.Tensor, depth: list, previous: torch.Tensor | None
+                   ) -> dict[str, torch.Tensor]:
+        for name, value in params.items():
+            value.requires_grad_(name in free)
+        variables = [params[n] for n in free]
+        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=self.config.max_iter,
+                                      line_search_fn="strong_wolfe", tolerance_grad=1e-7,
+                                      tolerance_change=1e-10, history_size=20)
+        last: dict[str, torch.Tensor] = {}
+
+        def closure() -> torch.Tensor:
+            self.evaluations += 1
+            optimizer.zero_grad()
+            out = self.body(params)
+            terms = self._terms(stage, out, params, target, conf, depth, previous)
+            total = sum(t.sum() for t in terms.values())
+            total.backward()
+            last.clear()
+            last.update({k: v.detach() for k, v in terms.items()})
+            return total
+
+        previous_loss = math.inf
+        for _ in range(self.config.max_calls):
+            backup = [v.detach().clone() for v in variables]
+            loss = float(optimizer.step(closure).detach())
+            if not math.isfinite(loss):
+                with torch.no_grad():
+                    for v, b in zip(variables, backup):
+                        v.copy_(b)
+                break
+            if abs(previous_loss - loss) <= self.config.ftol * max(1.0, abs(loss)):
+                break
+            previous_loss = loss
+        for value in params.values():
+            value.requires_grad_(False)
+        return last
+
+    # ------------------------------------------------------------------ initialisation
+    def _initialise(self, frames: list[Frame], target: torch.Tensor,
+                    conf: torch.Tensor) -> Params:
+        """Upright body facing the camera at the similar-triangles depth, refined by the
+        camera stage; a copy turned by 180 degrees is tried when the shoulders are close
+        in 2D (SMPLify-X), and the better one kept."""
+        body = self.body
+        params = body.init_params(len(frames))
+        with torch.no_grad():
+            rest = body(params)
+        up = self.scene.up_in_camera() if self.scene is not None else torch.tensor(
+            [0.0, -1.0, 0.0])
+        depth = self._torso_depth(rest.keypoints, target, conf)
+        candidates = [self._place(params, rest, target, conf, depth, up, facing=True)]
+        width = (target[:, SHOULDERS[0]] - target[:, SHOULDERS[1]]).norm(dim=-1)
+        if bool((width < self.config.flip_shoulder_px).any()) or bool(
+                (conf[:, SHOULDERS[0]] * conf[:, SHOULDERS[1]] == 0).any()):
+            candidates.append(self._place(params, rest, target, conf, depth, up, facing=False))
+        scored = [(self._camera_stage(c, target, conf, depth), c) for c in candidates]
+        losses_ = torch.stack([s for s, _ in scored])  # (C, B)
+        best = losses_.argmin(0)
+        return {k: torch.stack([scored[int(best[b])][1][k][b] for b in range(len(frames))])
+                for k in params}
+
+    def _torso_depth(self, model_kp: torch.Tensor, target: torch.Tensor,
+                     conf: torch.Tensor) -> torch.Tensor:
+        """fx * mean 3D torso edge / mean 2D torso edge, per frame."""
+        depths = []
+        for b in range(target.shape[0]):
+            e3, e2 = [], []
+            for i, j in TORSO_EDGES + [SHOULDERS]:
+                if conf[b, i] > 0 and conf[b, j] > 0:
+                    e3.append((model_kp[0, i] - model_kp[0, j]).norm())
+                    e2.append((target[b, i] - target[b, j]).norm())
+            if not e2 or float(sum(e2)) < 1e-3:
+                depths.append(torch.tensor(3.0))
+            else:
+                depths.append(self.camera.fx * torch.stack(e3).mean() / torch.stack(e2).mean())
+        return torch.stack(depths).clamp(0.3, 30.0)
+
+    def _place(self, params: Params, rest: BodyOutput, target: torch.Tensor,
+               conf: torch.Tensor, depth: torch.Tensor, up: torch.Tensor,
+               facing: bool) -> Params:
+        body = self.body
+        view = torch.tensor([0.0, 0.0, 1.0])
+        horizontal = view - (view @ up) * up
+        if horizontal.norm() < 1e-3:  # camera looking straight down or up
+            horizontal = torch.tensor([0.0, 1.0, 0.0]) - up[1] * up
+        horizontal = horizontal / horizontal.norm()
+        forward = -horizontal if facing else horizontal
+        # Rotation taking the model's (forward, up) to the camera's (forward, up).
+        model_f, model_u = body.forward_axis(), body.up_axis()
+        src = torch.stack([model_f, model_u, torch.linalg.cross(model_f, model_u)], 1)
+        dst = torch.stack([forward, up, torch.linalg.cross(forward, up)], 1)
+        rotation = dst @ src.T
+        new = {k: v.clone() for k, v in params.items()}
+        new["global_orient"][:] = matrix_to_axis_angle(rotation)
+        torso = [2, 5, 9, 12]
+        offset = rotation @ rest.keypoints[0, torso].mean(0)
+        for b in range(target.shape[0]):
+            w = conf[b, torso]
+            centre = (target[b, torso] * w[:, None]).sum(0) / w.sum() if w.sum() > 0 else \
+                target[b, BODY][conf[b, BODY] > 0].mean(0)
+            point = self.camera.backproject(centre[0], centre[1], depth[b])
+            new["transl"][b] = point - offset
+        return new
+
+    def _camera_stage(self, params: Params, target: torch.Tensor, conf: torch.Tensor,
+                      depth: torch.Tensor) -> torch.Tensor:
+        """Optimise root rotation and translation on the torso; returns loss per frame."""
+        weight = torch.zeros_like(conf)
+        weight[:, CAMERA_STAGE_KEYPOINTS] = conf[:, CAMERA_STAGE_KEYPOINTS] ** 2
+        variables = [params["transl"], params["global_orient"]]
+        for v in variables:
+            v.requires_grad_(True)
+        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=self.config.max_iter,
+                                      line_search_fn="strong_wolfe")
+        per_frame = torch.zeros(target.shape[0])
+
+        def closure() -> torch.Tensor:
+            nonlocal per_frame
+            self.evaluations += 1
+            optimizer.zero_grad()
+            out = self.body(params)
+            loss = losses.keypoint_data(out, self.camera, target, weight, self.config.data_rho)
+            loss = loss + self.config.init_depth_weight * (params["transl"][:, 2] - depth) ** 2
+            per_frame = loss.detach()
+            total = loss.sum()
+            total.backward()
+            return total
+
+        for _ in range(3):
+            optimizer.step(closure)
+        for v in variables:
+            v.requires_grad_(False)
+        return per_frame

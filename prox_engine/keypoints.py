@@ -1,0 +1,114 @@
+"""OpenPose keypoint layout (BODY_25 + two hands + face) and keypoint-file parsing."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+BODY_25 = [
+    "nose", "neck", "right_shoulder", "right_elbow", "right_wrist", "left_shoulder",
+    "left_elbow", "left_wrist", "mid_hip", "right_hip", "right_knee", "right_ankle",
+    "left_hip", "left_knee", "left_ankle", "right_eye", "left_eye", "right_ear", "left_ear",
+    "left_big_toe", "left_small_toe", "left_heel", "right_big_toe", "right_small_toe",
+    "right_heel",
+]
+HAND_21 = ["wrist"] + [f"{finger}_{k}" for finger in ("thumb", "index", "middle", "ring", "pinky")
+                       for k in range(1, 5)]
+# OpenPose's 70 face points; like PROX we fit 17..67 (brows, nose, eyes, mouth), not the
+# jaw contour (0..16) and never the pupils (68, 69).
+FACE_FIT = list(range(17, 68))
+
+N_BODY, N_HAND, N_FACE = 25, 21, len(FACE_FIT)
+BODY = slice(0, N_BODY)
+LEFT_HAND = slice(N_BODY, N_BODY + N_HAND)
+RIGHT_HAND = slice(N_BODY + N_HAND, N_BODY + 2 * N_HAND)
+FACE = slice(N_BODY + 2 * N_HAND, N_BODY + 2 * N_HAND + N_FACE)
+N_KEYPOINTS = FACE.stop  # 118, the SMPLify-X layout
+
+# Torso edges (shoulder-hip) for the similar-triangles depth initialisation.
+TORSO_EDGES = [(2, 9), (5, 12)]  # right shoulder - right hip, left shoulder - left hip
+SHOULDERS = (2, 5)
+
+
+@dataclass
+class Keypoints:
+    """One person's 2D keypoints, (118, 3) rows of (x, y, confidence) in the layout above."""
+
+    data: np.ndarray
+    has_hands: bool
+    has_face: bool
+
+    @property
+    def xy(self) -> np.ndarray:
+        return self.data[:, :2]
+
+    @property
+    def confidence(self) -> np.ndarray:
+        return self.data[:, 2]
+
+
+def _points(person: dict, key: str, count: int, path: Path) -> np.ndarray | None:
+    values = person.get(key)
+    if values is None or len(values) == 0:
+        return None
+    if not isinstance(values, list) or len(values) != 3 * count:
+        got = len(values) if isinstance(values, list) else type(values).__name__
+        raise InputError(path, f"'{key}' must hold {3 * count} numbers ({count} x, y, "
+                               f"confidence), got {got}")
+    try:
+        array = np.asarray(values, dtype=np.float64).reshape(count, 3)
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"'{key}' contains non-numeric values") from exc
+    if not np.isfinite(array).all():
+        raise InputError(path, f"'{key}' contains NaN or infinite values")
+    if (array[:, 2] < 0).any():
+        raise InputError(path, f"'{key}' has negative confidences")
+    return array
+
+
+def parse_person(person: dict, path: Path) -> Keypoints:
+    """Convert one OpenPose ``people`` entry to the fitting layout."""
+    if not isinstance(person, dict):
+        raise InputError(path, "each entry of 'people' must be an object")
+    body = _points(person, "pose_keypoints_2d", N_BODY, path)
+    if body is None:
+        raise InputError(path, "person without 'pose_keypoints_2d'")
+    left = _points(person, "hand_left_keypoints_2d", N_HAND, path)
+    right = _points(person, "hand_right_keypoints_2d", N_HAND, path)
+    face = _points(person, "face_keypoints_2d", 70, path)
+    data = np.zeros((N_KEYPOINTS, 3))
+    data[BODY] = body
+    if left is not None:
+        data[LEFT_HAND] = left
+    if right is not None:
+        data[RIGHT_HAND] = right
+    if face is not None:
+        data[FACE] = face[FACE_FIT]
+    return Keypoints(data, has_hands=left is not None or right is not None,
+                     has_face=face is not None)
+
+
+def load_keypoints(path: Path) -> Keypoints:
+    """Read an OpenPose JSON file and return its main person (largest total confidence)."""
+    path = Path(path)
+    try:
+        content = json.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise InputError(path, "file not found") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"not valid JSON ({exc})") from exc
+    people = content.get("people") if isinstance(content, dict) else None
+    if not isinstance(people, list):
+        raise InputError(path, "no 'people' list")
+    if not people:
+        raise InputError(path, "'people' is empty: nobody detected in this frame")
+    persons = [parse_person(p, path) for p in people]
+    best = max(persons, key=lambda k: float(k.confidence[BODY].sum()))
+    if best.confidence[BODY].sum() <= 0 or math.isclose(best.confidence[BODY].sum(), 0.0):
+        raise InputError(path, "all body keypoints have zero confidence")
+    return best

@@ -1,0 +1,93 @@
+"""The terms of the PROX objective, each a function returning a (B,) tensor."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .body.base import BodyModel, BodyOutput
+from .camera import Camera
+from .geometry import vertex_normals
+from .scene import Scene
+
+
+def gmof(squared: torch.Tensor, rho: float) -> torch.Tensor:
+    """Geman-McClure of a squared residual, scaled so that it is ~squared near zero."""
+    return rho ** 2 * squared / (squared + rho ** 2)
+
+
+def keypoint_data(out: BodyOutput, camera: Camera, target: torch.Tensor,
+                  weight: torch.Tensor, rho: float) -> torch.Tensor:
+    """Robust reprojection error; ``target`` (B, K, 2) pixels, ``weight`` (B, K) =
+    (joint weight * confidence)^2 as in SMPLify-X."""
+    projected = camera.project(out.keypoints)
+    squared = ((projected - target) ** 2).sum(-1)
+    return (weight * gmof(squared, rho)).sum(1)
+
+
+def penetration(out: BodyOutput, body: BodyModel, scene: Scene) -> torch.Tensor:
+    """Penetration energy of the body's scene vertices, (B,)."""
+    return penetration_energy(out.vertices[:, body.scene_vertices], scene)
+
+
+def penetration_energy(points: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """Sum over points (B, N, 3) inside the scene of d^2 (the paper's ||d n||^2) plus |d|
+    (so that shallow penetrations still get a push), d being the signed distance."""
+    depth = torch.relu(-scene.signed_distance(points))
+    return (depth ** 2 + depth).sum(-1)
+
+
+def contact(out: BodyOutput, body: BodyModel, scene: Scene, vertex_ids: torch.Tensor,
+            rho: float, max_angle_deg: float, max_distance: float) -> torch.Tensor:
+    """Contact energy of the body's contact vertices, (B,)."""
+    normals = vertex_normals(out.vertices, body.faces)[:, vertex_ids]
+    return contact_energy(out.vertices[:, vertex_ids], normals, scene, rho, max_angle_deg,
+                          max_distance)
+
+
+def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rho: float,
+                   max_angle_deg: float, max_distance: float) -> torch.Tensor:
+    """Robust point-to-surface distance of points (B, N, 3) within ``max_distance`` of the
+    scene whose outward normal faces the surface (within ``max_angle_deg`` of opposite),
+    averaged over those points as in PROX; 0 when none qualifies."""
+    batch = points.shape[0]
+    dist, scene_n = scene.closest_surface(points.reshape(-1, 3))
+    dist, scene_n = dist.reshape(batch, -1), scene_n.reshape(batch, -1, 3)
+    facing = -(scene.world_normals(normals) * scene_n).sum(-1)
+    valid = ((facing > math.cos(math.radians(max_angle_deg))) & (dist < max_distance)).detach()
+    robust = gmof(dist ** 2, rho) / rho ** 2
+    return (robust * valid).sum(1) / valid.sum(1).clamp_min(1)
+
+
+def self_penetration(out: BodyOutput, body: BodyModel) -> torch.Tensor:
+    """Squared overlap of collision spheres that must not meet (arms/torso, leg/leg)."""
+    if out.spheres is None or len(body.collision_pairs) == 0:
+        return out.vertices.new_zeros(out.vertices.shape[0])
+    a = out.spheres[:, body.collision_pairs[:, 0]]
+    b = out.spheres[:, body.collision_pairs[:, 1]]
+    overlap = torch.relu(a[..., 3] + b[..., 3] - (a[..., :3] - b[..., :3]).norm(dim=-1))
+    return (overlap ** 2).sum(1)
+
+
+def depth_data(out: BodyOutput, body: BodyModel, points: list[torch.Tensor | None],
+               rho: float) -> torch.Tensor:
+    """Robust distance from each body-mask depth point to the nearest camera-facing body
+    vertex (SMPLify-D); points per batch element, in camera coordinates."""
+    normals = vertex_normals(out.vertices, body.faces)
+    terms = []
+    for b, cloud in enumerate(points):
+        if cloud is None or len(cloud) == 0:
+            terms.append(out.vertices.new_zeros(()))
+            continue
+        verts = out.vertices[b]
+        visible = ((normals[b] * verts).sum(-1) < 0) & body.scene_vertices
+        dist = torch.cdist(cloud, verts[visible]).min(1).values
+        terms.append(gmof(dist ** 2, rho).mean())
+    return torch.stack(terms)
+
+
+def temporal(out: BodyOutput, previous: torch.Tensor | None) -> torch.Tensor:
+    """Squared 3D keypoint motion (m^2) to the previous frame's fit (sequence mode)."""
+    if previous is None:
+        return out.vertices.new_zeros(out.vertices.shape[0])
+    return ((out.keypoints[:, :25] - previous[:, :25]) ** 2).sum((1, 2))

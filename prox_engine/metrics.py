@@ -1,0 +1,49 @@
+"""Per-frame statistics of a fit: penetration, contact, reprojection error."""
+from __future__ import annotations
+
+import torch
+
+from .body.base import BodyModel
+from .camera import Camera
+from .keypoints import BODY, Keypoints
+from .scene import Scene
+
+PENETRATION_THRESHOLD = 0.01  # a vertex "penetrates" when more than 1 cm inside
+CONTACT_THRESHOLD = 0.02  # a part "touches" when one of its vertices is within 2 cm
+
+
+@torch.no_grad()
+def penetration_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> dict:
+    """Share of body vertices more than 1 cm inside the scene, their mean and the max depth."""
+    d = scene.signed_distance(vertices[body.scene_vertices])
+    inside = d < -PENETRATION_THRESHOLD
+    depth = torch.relu(-d)
+    return {
+        "penetrating_share": float(inside.float().mean()),
+        "max_depth_m": float(depth.max()),
+        "mean_depth_m": float(depth[inside].mean()) if inside.any() else 0.0,
+    }
+
+
+@torch.no_grad()
+def contact_parts(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> list[str]:
+    """Contact parts with a vertex within 2 cm of the scene surface (or inside it)."""
+    touching = []
+    for part, ids in body.contact_parts.items():
+        dist, _ = scene.closest_surface(vertices[ids])
+        sdf = scene.signed_distance(vertices[ids])
+        if bool(((dist < CONTACT_THRESHOLD) | (sdf < 0)).any()):
+            touching.append(part)
+    return touching
+
+
+@torch.no_grad()
+def reprojection_error(keypoints3d: torch.Tensor, keypoints: Keypoints, camera: Camera,
+                       mask: torch.Tensor, min_confidence: float = 0.1) -> float:
+    """Mean pixel distance over the body keypoints detected with some confidence."""
+    uv = camera.project(keypoints3d[BODY])
+    target = torch.as_tensor(keypoints.data[BODY], dtype=torch.float32)
+    valid = (target[:, 2] > min_confidence) & mask[BODY]
+    if not valid.any():
+        return float("nan")
+    return float((uv[valid] - target[valid, :2]).norm(dim=-1).mean())

@@ -1,0 +1,145 @@
+"""Fitting whole recordings: read the PROX layout, fit frame by frame (or in sequence or
+batches), write results atomically, and summarise. Used by the CLI and the workers."""
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from . import metrics
+from .body.base import BodyModel
+from .config import FitConfig
+from .dataset import Recording, load_calibration, load_cam2world, load_scene_mesh
+from .depth import load_depth_points
+from .errors import InputError
+from .fitting import Fitter, FitResult, Frame
+from .keypoints import load_keypoints
+from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json
+from .scene import Scene
+
+Progress = Callable[[int, int, str], None]
+
+
+@dataclass
+class RecordingResult:
+    recording: str
+    summary: dict
+    failures: list[tuple[str, str]] = field(default_factory=list)
+
+
+def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body: BodyModel,
+                  max_frames: int | None = None, sequence: bool = False,
+                  progress: Progress | None = None) -> RecordingResult:
+    """Fit the frames of one recording and write ``OUT/<rec>/...``.
+
+    Problems with the recording's shared files (calibration, camera pose, scene) raise
+    :class:`InputError`; a bad frame is reported in the summary and skipped.
+    """
+    rec = Recording(Path(base), recording)
+    names = rec.frames()
+    if max_frames is not None:
+        names = names[:max_frames]
+    if not names:
+        raise InputError(rec.keypoint_dir, "no *_keypoints.json files")
+    camera = load_calibration(rec.calibration_path)
+    cam2world = load_cam2world(rec.cam2world_path)
+    t0 = time.perf_counter()
+    scene = Scene.load(*load_scene_mesh(rec.scene_path), cam2world, rec.sdf_paths,
+                       dim=config.sdf_dim)
+    scene_seconds = time.perf_counter() - t0
+    fitter = Fitter(body, camera, config, scene)
+
+    failures: list[tuple[str, str]] = []
+    frames_summary: list[dict] = []
+    previous: FitResult | None = None
+    batch = 1 if sequence else max(1, config.batch_size)
+    done = 0
+    for start in range(0, len(names), batch):
+        frames = []
+        for name in names[start:start + batch]:
+            try:
+                frames.append(_load_frame(rec, name, camera, config))
+            except InputError as exc:
+                failures.append((name, str(exc)))
+                previous = None  # do not warm-start across a gap
+        if frames:
+            warm = previous.params if (sequence and previous is not None) else None
+            prev_kp = previous.keypoints[None] if warm is not None else None
+            results = fitter.fit(frames, warm_start=warm, previous_keypoints=prev_kp)
+            for frame, result in zip(frames, results):
+                frames_summary.append(_write_frame(out, recording, frame, result, body,
+                                                   camera, scene, config, sequence))
+            previous = results[-1]
+        done = min(start + batch, len(names))
+        if progress:
+            progress(done, len(names), names[done - 1])
+
+    summary = _summarise(recording, config, sequence, frames_summary, failures, scene_seconds)
+    write_json(Path(out) / recording / "summary.json", summary)
+    return RecordingResult(recording, summary, failures)
+
+
+def _load_frame(rec: Recording, name: str, camera, config: FitConfig) -> Frame:
+    keypoints = load_keypoints(rec.keypoint_path(name))
+    depth = None
+    if config.uses("depth"):
+        paths = rec.depth_paths(name)
+        if paths is None:
+            raise InputError(rec.recording_dir / "Depth" / f"{name}.png",
+                             f"configuration '{config.name}' needs Depth/ and BodyIndex/ "
+                             "frames")
+        depth = load_depth_points(*paths, camera, config.flip, config.depth_max_points)
+    return Frame(name, keypoints, depth)
+
+
+def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
+                 body: BodyModel, camera, scene: Scene, config: FitConfig,
+                 sequence: bool) -> dict:
+    pen = metrics.penetration_stats(result.vertices, body, scene)
+    touching = metrics.contact_parts(result.vertices, body, scene)
+    error = metrics.reprojection_error(result.keypoints, frame.keypoints, camera,
+                                       body.keypoint_mask)
+    stats = {"frame": frame.name, "reprojection_error_px": error, **pen,
+             "contact_parts": touching, "seconds": result.seconds}
+    params = body.export(result.params, 0)
+    params["camera"] = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+                        "k": camera.k, "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                        "translation": [0, 0, 0]}
+    json_path, ply_path = frame_paths(out, recording, frame.name)
+    write_json(json_path, {
+        "frame": frame.name, "config": config.name, "sequence": sequence, **params,
+        "losses": result.losses, "stats": stats,
+        "timings": {"seconds": result.seconds, "stages": result.stage_seconds},
+    })
+    atomic_write_bytes(ply_path, ply_bytes(result.vertices.numpy(), body.faces.numpy()))
+    return stats
+
+
+def _summarise(recording: str, config: FitConfig, sequence: bool, frames: list[dict],
+               failures: list[tuple[str, str]], scene_seconds: float) -> dict:
+    n = len(frames)
+    parts = Counter(p for f in frames for p in f["contact_parts"])
+    mean = lambda key: sum(f[key] for f in frames) / n if n else None  # noqa: E731
+    return {
+        "recording": recording, "config": config.name, "sequence": sequence,
+        "frames_fitted": n, "frames_failed": len(failures),
+        "failures": [{"frame": f, "error": e} for f, e in failures],
+        "penetration": {
+            "mean_penetrating_share": mean("penetrating_share"),
+            "max_depth_m": max((f["max_depth_m"] for f in frames), default=None),
+        },
+        "contact": {
+            "share_of_frames_with_contact": (sum(bool(f["contact_parts"]) for f in frames) / n
+                                             if n else None),
+            "parts": {p: c / n for p, c in sorted(parts.items())},
+        },
+        "reprojection_error_px": mean("reprojection_error_px"),
+        "seconds_per_frame": mean("seconds"),
+        "scene_setup_seconds": scene_seconds,
+        "threads": torch.get_num_threads(),
+        "frames": frames,
+    }

@@ -1,0 +1,106 @@
+"""Every malformed input gives a clear error naming the file."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from prox_engine.config import load_config
+from prox_engine.dataset import load_calibration, load_cam2world, load_scene_mesh
+from prox_engine.errors import InputError
+from prox_engine.keypoints import load_keypoints
+
+
+def _person(n=25, value=1.0, conf=0.9):
+    return [v for _ in range(n) for v in (value, value, conf)]
+
+
+def _write(path, content):
+    path.write_text(content if isinstance(content, str) else json.dumps(content))
+    return path
+
+
+@pytest.mark.parametrize("content, message", [
+    ({"people": []}, "'people' is empty"),
+    ({"nobody": 1}, "no 'people' list"),
+    ("{not json", "not valid JSON"),
+    ({"people": [{"pose_keypoints_2d": [1.0] * 74}]}, "must hold 75 numbers"),
+    ({"people": [{"pose_keypoints_2d": _person(value=float("nan"))}]}, "NaN"),
+    ({"people": [{"pose_keypoints_2d": _person(),
+                  "hand_left_keypoints_2d": [0.0] * 60}]}, "'hand_left_keypoints_2d' must hold"),
+    ({"people": [{"pose_keypoints_2d": _person(conf=0.0)}]}, "zero confidence"),
+    ({"people": [{"face_keypoints_2d": _person(70)}]}, "without 'pose_keypoints_2d'"),
+])
+def test_bad_keypoint_files(tmp_path, content, message):
+    path = _write(tmp_path / "f_keypoints.json", content)
+    with pytest.raises(InputError) as err:
+        load_keypoints(path)
+    assert str(path) in str(err.value) and message in str(err.value)
+
+
+def test_missing_keypoint_file(tmp_path):
+    with pytest.raises(InputError, match="file not found"):
+        load_keypoints(tmp_path / "absent_keypoints.json")
+
+
+def test_main_person_is_the_most_confident(tmp_path):
+    weak = {"pose_keypoints_2d": _person(value=5.0, conf=0.2)}
+    strong = {"pose_keypoints_2d": _person(value=7.0, conf=0.8),
+              "hand_right_keypoints_2d": _person(21, 3.0, 0.5),
+              "face_keypoints_2d": _person(70, 2.0, 0.4)}
+    kp = load_keypoints(_write(tmp_path / "a_keypoints.json", {"people": [weak, strong]}))
+    assert kp.data[0, 0] == 7.0 and kp.has_hands and kp.has_face
+    assert kp.data.shape == (118, 3)
+    assert kp.data[46, 0] == 3.0 and kp.data[25, 2] == 0  # right hand set, left hand missing
+
+
+def test_calibration_errors(tmp_path):
+    with pytest.raises(InputError, match="needs 'f'"):
+        load_calibration(_write(tmp_path / "Color.json", {"c": [1, 2]}))
+    with pytest.raises(InputError, match="positive"):
+        load_calibration(_write(tmp_path / "Color.json", {"f": [-1, 1], "c": [1, 2]}))
+    with pytest.raises(InputError, match="'c' must have 2"):
+        load_calibration(_write(tmp_path / "Color.json", {"f": [1, 1], "c": [1]}))
+    cam = load_calibration(_write(tmp_path / "Color.json",
+                                  {"f": [1060.5, 1060.4], "c": [951.3, 536.8], "k": [0.1, 0.0]}))
+    assert cam.fx == 1060.5 and cam.cy == 536.8 and cam.k == [0.1, 0.0]
+
+
+def test_cam2world_errors(tmp_path):
+    singular = np.eye(4)
+    singular[2, 2] = 0
+    with pytest.raises(InputError, match="singular") as err:
+        load_cam2world(_write(tmp_path / "S.json", singular.tolist()))
+    assert "S.json" in str(err.value)
+    scaled = np.eye(4) * 2
+    scaled[3, 3] = 1
+    with pytest.raises(InputError, match="proper rotation"):
+        load_cam2world(_write(tmp_path / "S.json", scaled.tolist()))
+    with pytest.raises(InputError, match="16 numbers"):
+        load_cam2world(_write(tmp_path / "S.json", [[1, 0], [0, 1]]))
+    with pytest.raises(InputError, match="NaN"):
+        load_cam2world(_write(tmp_path / "S.json", [[float("nan")] * 4] * 4))
+
+
+def test_unreadable_mesh(tmp_path):
+    path = tmp_path / "Room.ply"
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n garbage")
+    with pytest.raises(InputError) as err:
+        load_scene_mesh(path)
+    assert "Room.ply" in str(err.value)
+    with pytest.raises(InputError, match="not found"):
+        load_scene_mesh(tmp_path / "Missing.ply")
+
+
+def test_configs(tmp_path):
+    for name in ("rgb", "prox", "smplifyd", "proxd"):
+        config = load_config(name)
+        assert config.stages and config.name == name
+    assert load_config("prox").uses("contact") and not load_config("rgb").uses("penetration")
+    assert load_config("proxd").uses("depth")
+    with pytest.raises(InputError, match="unknown configuration"):
+        load_config("nope")
+    bad = _write(tmp_path / "bad.yaml", "stages:\n  - {body: 1, wings: 2}\n")
+    with pytest.raises(InputError, match="unknown terms"):
+        load_config(bad)

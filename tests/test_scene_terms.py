@@ -1,0 +1,112 @@
+"""SDF sign and distances, penetration and contact terms, projection."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from prox_engine.camera import Camera
+from prox_engine.losses import contact_energy, penetration_energy
+from prox_engine.scene import Scene
+from prox_engine.scene_sdf import SignedDistanceField, cached_sdf, compute_sdf
+
+from .conftest import closed_box, plane_mesh
+
+
+def _scene(mesh, dim=64) -> Scene:
+    sdf = compute_sdf(mesh.vertices, mesh.faces, dim=dim, padding=0.5)
+    return Scene(mesh.vertices, mesh.faces, np.eye(4), sdf, sample_spacing=0.05)
+
+
+def test_sdf_sign_and_distance_on_closed_box():
+    box = closed_box()
+    sdf = compute_sdf(box.vertices, box.faces, dim=64, padding=0.5)
+    points = torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.1, -0.2], [0.9, 0.0, 0.0],
+                           [0.0, 0.0, 0.7], [0.6, 0.6, 0.6]])
+    values = sdf(points)
+    expected = torch.tensor([-0.5, -0.2, 0.4, 0.2, math.sqrt(3 * 0.1 ** 2)])
+    assert torch.all(values[:2] < 0) and torch.all(values[2:] > 0)
+    assert torch.allclose(values, expected, atol=0.02)
+
+
+def test_sdf_sign_on_open_plane():
+    """A single-sided plane: above is outside, below is inside (winding numbers fail here)."""
+    plane = plane_mesh()
+    sdf = compute_sdf(plane.vertices, plane.faces, dim=64, padding=0.5)
+    xy = torch.tensor([[0.3, -0.7], [1.2, 0.4], [-1.5, 1.5]])
+    for z in (0.05, 0.2, 0.4):
+        above = sdf(torch.cat([xy, torch.full((3, 1), z)], 1))
+        below = sdf(torch.cat([xy, torch.full((3, 1), -z)], 1))
+        assert torch.allclose(above, torch.full((3,), z), atol=0.01)
+        assert torch.allclose(below, torch.full((3,), -z), atol=0.01)
+
+
+def test_sdf_save_load_round_trip_and_cache(tmp_path):
+    box = closed_box()
+    first = cached_sdf(box.vertices, box.faces, tmp_path, dim=32)
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert len(files) == 2 and files[0].endswith(".json") and files[1].endswith("_sdf.npy")
+    again = cached_sdf(box.vertices, box.faces, tmp_path, dim=32)
+    assert torch.equal(first.grid, again.grid)
+    loaded = SignedDistanceField.load(tmp_path / files[0], tmp_path / files[1])
+    assert loaded.dim == 32 and torch.equal(loaded.grid, first.grid)
+
+
+def test_penetration_gradient_pushes_vertex_out():
+    scene = _scene(plane_mesh())
+    point = torch.tensor([[[0.2, 0.1, -0.05]]], requires_grad=True)
+    energy = penetration_energy(point, scene)
+    assert energy.item() > 0
+    energy.sum().backward()
+    step = -point.grad[0, 0]
+    assert step[2] > 0 and step[2].abs() > 10 * step[:2].abs().max()
+    outside = torch.tensor([[[0.2, 0.1, 0.05]]])
+    assert penetration_energy(outside, scene).item() == 0
+
+
+def test_contact_pulls_near_vertex_and_ignores_far_one():
+    scene = _scene(plane_mesh())
+    down = torch.tensor([[[0.0, 0.0, -1.0]]])  # body surface facing the floor
+    near = torch.tensor([[[0.3, 0.2, 0.03]]], requires_grad=True)
+    contact_energy(near, down, scene, rho=0.05, max_angle_deg=45,
+                   max_distance=0.15).sum().backward()
+    assert near.grad[0, 0, 2] > 0  # descending the energy moves the point down to the floor
+    far = torch.tensor([[[0.3, 0.2, 0.5]]], requires_grad=True)
+    energy = contact_energy(far, down, scene, rho=0.05, max_angle_deg=45, max_distance=0.15)
+    energy.sum().backward()
+    assert energy.item() == 0 and far.grad.abs().max() == 0
+    up = torch.tensor([[[0.0, 0.0, 1.0]]])  # facing away: orientation test rejects it
+    assert contact_energy(near.detach(), up, scene, 0.05, 45, 0.15).item() == 0
+
+
+def test_contact_uses_surface_not_vertices():
+    """Point-to-surface distance: a point over the middle of a large triangle is close."""
+    vertices = np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [0.0, 2.0, 0.0]])
+    faces = np.array([[0, 1, 2]])
+    sdf = compute_sdf(vertices, faces, dim=32, padding=0.5)
+    scene = Scene(vertices, faces, np.eye(4), sdf, sample_spacing=0.5)
+    dist, normal = scene.closest_surface(torch.tensor([[0.1, 0.0, 0.02]]))
+    assert abs(dist.item() - 0.02) < 1e-5
+    assert torch.allclose(normal, torch.tensor([[0.0, 0.0, 1.0]]))
+
+
+def test_projection_matches_hand_computed_point():
+    camera = Camera(fx=1000.0, fy=900.0, cx=960.0, cy=540.0)
+    uv = camera.project(torch.tensor([[0.5, -0.25, 2.0]]))
+    assert torch.allclose(uv, torch.tensor([[960 + 1000 * 0.25, 540 - 900 * 0.125]]))
+    distorted = Camera(1000.0, 1000.0, 0.0, 0.0, k=[0.1])
+    x = 0.5 / 2.0
+    r2 = x * x
+    assert torch.allclose(distorted.project(torch.tensor([[0.5, 0.0, 2.0]])),
+                          torch.tensor([[1000 * x * (1 + 0.1 * r2), 0.0]]))
+
+
+def test_scene_frame_transform():
+    """Scene terms read the SDF in world coordinates through cam2world."""
+    plane = plane_mesh()
+    cam2world = np.eye(4)
+    cam2world[:3, 3] = [0.0, 0.0, 1.0]  # camera 1 m above the floor, axes aligned
+    sdf = compute_sdf(plane.vertices, plane.faces, dim=64, padding=0.5)
+    scene = Scene(plane.vertices, plane.faces, cam2world, sdf, sample_spacing=0.05)
+    assert abs(scene.signed_distance(torch.tensor([[0.0, 0.0, -0.8]])).item() - 0.2) < 0.01
