@@ -170,8 +170,10 @@ class AnnyBody(BodyModel):
             "thighs": is_("upperleg01.L", "upperleg01.R", "upperleg02.L", "upperleg02.R")
             & (ny > 0.5) & (z < hip_z - 0.16) & (z > knee_z + 0.08),
         }
-        self.contact_parts = {k: torch.from_numpy(np.flatnonzero(v & main)) for k, v in
-                              contact.items()}
+        # Hands are dense (1609 vertices each): every third vertex is enough for contact.
+        self.contact_parts = {k: torch.from_numpy(np.flatnonzero(v & main)[::3 if "hand" in k
+                                                                             else 1])
+                              for k, v in contact.items()}
 
         # Hand keypoints: wrist head, then per finger the heads of its three phalanges and
         # the fingertip vertex (the finger3 vertex farthest along its bone).
