@@ -82,3 +82,16 @@ def test_missing_scene_is_a_clear_error(sitting_data, tmp_path):
     assert run.returncode == 1
     assert "Synthetic.ply: scene mesh not found" in run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test_sequence_mode_warm_starts(sitting_data, tmp_path):
+    run = _fit(sitting_data, tmp_path / "seq", _config(tmp_path, "prox"), "--sequence",
+               "--frames", "2")
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((tmp_path / "seq" / REC / "summary.json").read_text())
+    assert summary["sequence"] is True and summary["frames_fitted"] == 2
+    first, second = (json.loads((tmp_path / "seq" / REC / "results" / f["frame"] / "000.json")
+                                .read_text()) for f in summary["frames"])
+    assert "temporal" in second["losses"] and "temporal" not in first["losses"]
+    assert first["phenotype"] == second["phenotype"]  # shape frozen after the first frame
+    assert list(second["timings"]["stages"]) == ["contact"]
