@@ -160,7 +160,8 @@ class Fitter:
         for _ in range(self.config.max_calls):
             backup = [v.detach().clone() for v in variables]
             loss = float(optimizer.step(closure).detach())
-            if not math.isfinite(loss):
+            if not math.isfinite(loss) or not all(bool(torch.isfinite(v).all())
+                                                  for v in variables):
                 with torch.no_grad():
                     for v, b in zip(variables, backup):
                         v.copy_(b)

@@ -69,11 +69,16 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
         if frames:
             warm = previous.params if (sequence and previous is not None) else None
             prev_kp = previous.keypoints[None] if warm is not None else None
-            results = fitter.fit(frames, warm_start=warm, previous_keypoints=prev_kp)
+            try:
+                results = fitter.fit(frames, warm_start=warm, previous_keypoints=prev_kp)
+            except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
+                failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
+                previous = None
+                results = []
             for frame, result in zip(frames, results):
                 frames_summary.append(_write_frame(out, recording, frame, result, body,
                                                    camera, scene, config, sequence))
-            previous = results[-1]
+            previous = results[-1] if results else None
         done = min(start + batch, len(names))
         if progress:
             progress(done, len(names), names[done - 1])

@@ -56,7 +56,10 @@ class Scene:
         the normal in world coordinates. Differentiable in the points; the candidate faces
         (those of the k nearest surface samples) are found without gradient."""
         world = self.to_world(points_cam)
-        _, nearest = self._tree.query(world.detach().numpy(), k=k)
+        # A line-search probe may produce non-finite points: query somewhere harmless; the
+        # non-finite loss then makes the optimiser reject the step.
+        query = np.nan_to_num(world.detach().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
+        _, nearest = self._tree.query(query, k=k)
         cand = torch.from_numpy(self._sample_face[nearest])
         tri = self.triangles[cand]
         p = world[:, None].expand(-1, k, -1)
