@@ -65,13 +65,6 @@ class Recording:
     def keypoint_path(self, frame: str) -> Path:
         return self.keypoint_dir / f"{frame}{KEYPOINT_SUFFIX}"
 
-    def image_path(self, frame: str) -> Path | None:
-        for ext in (".jpg", ".png"):
-            path = self.recording_dir / "Color" / f"{frame}{ext}"
-            if path.exists():
-                return path
-        return None
-
     def depth_paths(self, frame: str) -> tuple[Path, Path] | None:
         depth = self.recording_dir / "Depth" / f"{frame}.png"
         mask = self.recording_dir / "BodyIndex" / f"{frame}.png"

@@ -230,7 +230,7 @@ class Fitter:
         rotation = dst @ src.T
         new = {k: v.clone() for k, v in params.items()}
         new["global_orient"][:] = matrix_to_axis_angle(rotation)
-        torso = [2, 5, 9, 12]
+        torso = CAMERA_STAGE_KEYPOINTS
         offset = rotation @ rest.keypoints[0, torso].mean(0)
         for b in range(target.shape[0]):
             w = conf[b, torso]

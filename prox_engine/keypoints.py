@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -109,6 +108,6 @@ def load_keypoints(path: Path) -> Keypoints:
         raise InputError(path, "'people' is empty: nobody detected in this frame")
     persons = [parse_person(p, path) for p in people]
     best = max(persons, key=lambda k: float(k.confidence[BODY].sum()))
-    if best.confidence[BODY].sum() <= 0 or math.isclose(best.confidence[BODY].sum(), 0.0):
+    if best.confidence[BODY].sum() <= 0:
         raise InputError(path, "all body keypoints have zero confidence")
     return best

@@ -8,6 +8,7 @@ import torch
 from .body.base import BodyModel, BodyOutput
 from .camera import Camera
 from .geometry import vertex_normals
+from .keypoints import BODY
 from .scene import Scene
 
 
@@ -90,4 +91,4 @@ def temporal(out: BodyOutput, previous: torch.Tensor | None) -> torch.Tensor:
     """Squared 3D keypoint motion (m^2) to the previous frame's fit (sequence mode)."""
     if previous is None:
         return out.vertices.new_zeros(out.vertices.shape[0])
-    return ((out.keypoints[:, :25] - previous[:, :25]) ** 2).sum((1, 2))
+    return ((out.keypoints[:, BODY] - previous[:, BODY]) ** 2).sum((1, 2))

@@ -73,7 +73,6 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                 results = fitter.fit(frames, warm_start=warm, previous_keypoints=prev_kp)
             except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
                 failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
-                previous = None
                 results = []
             for frame, result in zip(frames, results):
                 frames_summary.append(_write_frame(out, recording, frame, result, body,

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from . import assets
 from .geometry import closest_point_on_triangles
-from .scene_sdf import SignedDistanceField, _surface_samples, cached_sdf
+from .scene_sdf import SignedDistanceField, cached_sdf, surface_samples
 
 
 class Scene:
@@ -26,7 +26,7 @@ class Scene:
         normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.triangles = tri
         self.face_normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        samples, self._sample_face = _surface_samples(self.vertices, self.faces, sample_spacing)
+        samples, self._sample_face = surface_samples(self.vertices, self.faces, sample_spacing)
         self._tree = cKDTree(samples)
 
     @classmethod

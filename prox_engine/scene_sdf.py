@@ -103,7 +103,7 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
     bmin = vertices.min(0) - padding
     bmax = vertices.max(0) + padding
     spacing = (bmax - bmin) / (dim - 1)
-    samples, sample_face = _surface_samples(vertices, faces, spacing.min() / 2)
+    samples, sample_face = surface_samples(vertices, faces, spacing.min() / 2)
     tree = cKDTree(samples)
     tri = torch.from_numpy(vertices[faces])  # F, 3, 3
     normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -178,7 +178,7 @@ def _exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.nd
             normals[face].numpy())
 
 
-def _surface_samples(vertices: np.ndarray, faces: np.ndarray,
+def surface_samples(vertices: np.ndarray, faces: np.ndarray,
                      spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Points on every face (its centroid plus area-proportional random points)."""
     tri = vertices[faces]

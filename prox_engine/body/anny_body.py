@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from .. import assets
-from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle, vertex_normals
+from ..geometry import axis_angle_to_matrix, vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 from .base import BodyModel, BodyOutput, Params
 
@@ -395,5 +395,3 @@ def _largest_component(faces: np.ndarray, count: int) -> np.ndarray:
     _, labels = connected_components(graph, directed=False)
     return labels == np.bincount(labels).argmax()
 
-
-__all__ = ["AnnyBody", "BODY_BONES", "FINGER_BONES", "matrix_to_axis_angle"]
