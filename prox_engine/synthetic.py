@@ -48,17 +48,23 @@ def _params(body: AnnyBody, pose: dict[str, list[float]], yaw: float,
     return params
 
 
-def _open_box(extents: list[float], centre: list[float], keep_bottom: bool = False,
-              inward: bool = False) -> trimesh.Trimesh:
+def _open_box(extents: list[float], centre: list[float]) -> trimesh.Trimesh:
     """A box surface without its bottom (scans never see under furniture)."""
     box = trimesh.creation.box(extents)
     box.vertices += centre
-    if not keep_bottom:
-        box.update_faces(box.face_normals[:, 2] > -0.5)
-        box.remove_unreferenced_vertices()
-    if inward:
-        box.invert()
+    box.update_faces(box.face_normals[:, 2] > -0.5)
+    box.remove_unreferenced_vertices()
     return box
+
+
+def _room(extents: list[float]) -> trimesh.Trimesh:
+    """Floor and walls seen from inside (normals inward), no ceiling, floor at z = 0."""
+    room = trimesh.creation.box(extents)
+    room.vertices += [0.0, 0.0, extents[2] / 2]
+    room.update_faces(room.triangles_center[:, 2] < extents[2] - 1e-6)  # drop the ceiling
+    room.remove_unreferenced_vertices()
+    room.invert()
+    return room
 
 
 def _look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -103,24 +109,27 @@ def make_sitting_dataset(out: Path, frames: int = 3, seed: int = 0, noise_px: fl
     rot = axis_angle_to_matrix(torch.tensor([0.0, 0.0, yaw])).numpy()
     local = (world_vertices[0] - shift) @ rot  # undo the yaw: body faces -y, left is +x
     main = body.scene_vertices.numpy()
-    glute = local[body.contact_parts["gluteus"].numpy()]
-    thigh = local[body.contact_parts["thighs"].numpy()]
-    seat_top = float(min(glute[:, 2].min(), thigh[:, 2].min())) - 0.003
-    floor = float(local[main, 2].min())
-    back_y = float(local[body.contact_parts["back"].numpy(), 1].max())
-    seat_depth = back_y - float(thigh[:, 1].min()) + 0.05
-    seat_y = back_y - seat_depth / 2
+    parts = np.asarray(body.vertex_parts)
+    body_local = local[main]
     width = 0.5
+    # Seat from just behind the calves to the back, its top just under every body vertex
+    # over it; backrest just behind the back: the person touches but does not penetrate.
+    legs = np.isin(parts[main], ["left_shin", "right_shin", "left_foot", "right_foot"])
+    seat_front = float(body_local[legs, 1].max()) + 0.01
+    over = (np.abs(body_local[:, 0]) < width / 2) & (body_local[:, 1] > seat_front)
+    seat_top = float(body_local[over, 2].min()) - 0.003
+    back_y = float(body_local[over & (body_local[:, 2] > seat_top + 0.05), 1].max()) + 0.003
+    floor = float(body_local[:, 2].min())
+    seat_depth = back_y - seat_front
+    seat_y = back_y - seat_depth / 2
     seat_h = seat_top - floor
     parts_local = [
         _open_box([width, seat_depth, seat_h], [0.0, seat_y, floor + seat_h / 2]),
-        _open_box([width, 0.04, 0.55], [0.0, back_y + 0.025, seat_top + 0.3]),
+        _open_box([width, 0.04, 0.55], [0.0, back_y + 0.02, seat_top + 0.3]),
     ]
     chair = trimesh.util.concatenate(parts_local)
     chair.vertices = chair.vertices @ rot.T + shift
-    room = _open_box([6.0, 6.0, 3.0], [0.0, 0.0, 1.5], inward=True)
-    room.update_faces(room.face_normals[:, 2] > -0.5)  # no ceiling (normals point inward)
-    room.remove_unreferenced_vertices()
+    room = _room([6.0, 6.0, 3.0])
     table = _open_box([1.2, 0.7, 0.75], [-1.8, -1.2, 0.375])
     scene = trimesh.util.concatenate([room, chair, table])
     scene = scene.subdivide_to_size(face_size)
