@@ -50,6 +50,10 @@ class Scene:
         """SDF values at camera-frame points (..., 3); negative inside the scene."""
         return self.sdf(self.to_world(points_cam))
 
+    def sdf_normals(self, points_cam: torch.Tensor) -> torch.Tensor:
+        """Outward scene normals (world frame, no gradient) at camera-frame points."""
+        return self.sdf.normals(self.to_world(points_cam))
+
     def closest_surface(self, points_cam: torch.Tensor, k: int = 6
                         ) -> tuple[torch.Tensor, torch.Tensor]:
         """Distance (N,) to the nearest scene surface point and that face's normal (N, 3),

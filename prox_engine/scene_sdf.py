@@ -56,6 +56,15 @@ class SignedDistanceField:
                             padding_mode="border", align_corners=True)
         return out.reshape(shape)
 
+    @torch.no_grad()
+    def normals(self, points: torch.Tensor) -> torch.Tensor:
+        """Unit SDF gradients (outward surface normals) at world points (..., 3), by
+        central differences over half a voxel."""
+        h = self.voxel_size / 2
+        offsets = torch.eye(3, dtype=points.dtype) * h
+        grad = torch.stack([self(points + o) - self(points - o) for o in offsets], -1)
+        return grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+
     def save(self, json_path: Path, npy_path: Path) -> None:
         """Write in the PROX layout: ``{min, max, dim}`` JSON plus a ``dim^3`` array."""
         buffer = io.BytesIO()

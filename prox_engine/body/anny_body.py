@@ -66,6 +66,13 @@ _BODY25_FROM_COCO = {
     21: "left_heel", 22: "right_big_toe", 23: "right_small_toe", 24: "right_heel",
 }
 ADULT_AGE_YEARS = 35.0
+# Starting poses (local-bone axis-angle); the fitter keeps the one that explains the
+# keypoints best: from standing, thighs seen end-on are as likely to swing back as forward.
+_POSTURES = {
+    "standing": {},
+    "sitting": {"upperleg01.L": [-1.4, 0.0, 0.0], "upperleg01.R": [-1.4, 0.0, 0.0],
+                "lowerleg01.L": [1.4, 0.0, 0.0], "lowerleg01.R": [1.4, 0.0, 0.0]},
+}
 
 
 def _limit_key(bone: str) -> str:
@@ -268,15 +275,20 @@ class AnnyBody(BodyModel):
         self.collision_pairs = torch.tensor(pairs, dtype=torch.long)
 
     # ----------------------------------------------------------------- parameters
-    def init_params(self, batch_size: int) -> Params:
+    postures = tuple(_POSTURES)
+
+    def init_params(self, batch_size: int, posture: str = "standing") -> Params:
         def zeros(*shape: int) -> torch.Tensor:
             return torch.zeros(batch_size, *shape)
 
-        return {
+        params = {
             "global_orient": zeros(3), "transl": zeros(3),
             "body_pose": zeros(len(BODY_BONES), 3), "hand_pose": zeros(len(FINGER_BONES), 3),
             "shape": self.shape_init.repeat(batch_size, 1),
         }
+        for bone, value in _POSTURES[posture].items():
+            params["body_pose"][:, BODY_BONES.index(bone)] = torch.tensor(value)
+        return params
 
     def shape_group(self) -> list[str]:
         return ["shape"]
@@ -343,9 +355,12 @@ class AnnyBody(BodyModel):
 
     # ----------------------------------------------------------------- priors
     def pose_prior(self, params: Params) -> torch.Tensor:
+        return (params["body_pose"] ** 2).sum((1, 2))
+
+    def joint_limits(self, params: Params) -> torch.Tensor:
         pose = params["body_pose"]
         outside = torch.relu(pose - self.limit_hi) + torch.relu(self.limit_lo - pose)
-        return (pose ** 2).sum((1, 2)) + 100.0 * (outside ** 2).sum((1, 2))
+        return (outside ** 2).sum((1, 2))
 
     def bending_prior(self, params: Params) -> torch.Tensor:
         flexion = params["body_pose"][:, self.flexion_index, 0]

@@ -29,9 +29,11 @@ class BodyModel(ABC, torch.nn.Module):
     scene_vertices: torch.Tensor  # (V,) bool: vertices used by scene terms (no eyes/tongue)
     collision_pairs: torch.Tensor  # (P, 2) sphere index pairs that must not overlap
 
+    postures: tuple[str, ...] = ("standing",)  # starting poses init_params can give
+
     @abstractmethod
-    def init_params(self, batch_size: int) -> Params:
-        """Parameters of a neutral body at the origin, as leaf tensors."""
+    def init_params(self, batch_size: int, posture: str = "standing") -> Params:
+        """Parameters of a mean-shaped body at the origin in one of ``postures``."""
 
     @abstractmethod
     def forward(self, params: Params) -> BodyOutput:
@@ -40,6 +42,10 @@ class BodyModel(ABC, torch.nn.Module):
     @abstractmethod
     def pose_prior(self, params: Params) -> torch.Tensor:
         """(B,) penalty of implausible body poses."""
+
+    @abstractmethod
+    def joint_limits(self, params: Params) -> torch.Tensor:
+        """(B,) squared violation of anatomical joint limits (radians^2)."""
 
     @abstractmethod
     def bending_prior(self, params: Params) -> torch.Tensor:
