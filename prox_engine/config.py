@@ -21,6 +21,8 @@ class Stage:
     weights: dict[str, float]
     optimize_shape: bool = True
     optimize_hands: bool = False
+    max_iter: int | None = None  # None: the configuration's max_iter / max_calls
+    max_calls: int | None = None
 
 
 @dataclass
@@ -30,8 +32,10 @@ class FitConfig:
     description: str = ""
     data_rho: float = 100.0  # Geman-McClure scale of the reprojection error (pixels)
     ignore_keypoints: list[int] = field(default_factory=lambda: [1, 9, 12])
+    joint_limit_weight: float = 1e4  # every stage: anatomical limits are constraints
     init_depth_weight: float = 100.0  # camera stage: keep the similar-triangles depth
     flip_shoulder_px: float = 25.0  # try the 180-degree-turned body below this 2D width
+    scale_search: bool = True  # resolve depth against the scene before the scene stages
     max_iter: int = 30  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5
@@ -75,6 +79,7 @@ def load_config(name_or_path: str | Path) -> FitConfig:
         name = str(entry.pop("name", f"stage{i}"))
         shape = bool(entry.pop("optimize_shape", True))
         hands = bool(entry.pop("optimize_hands", False))
+        budget = {k: int(entry.pop(k)) for k in ("max_iter", "max_calls") if k in entry}
         unknown = set(entry) - set(TERMS)
         if unknown:
             raise InputError(path, f"stage {name}: unknown terms {sorted(unknown)}")
@@ -82,7 +87,7 @@ def load_config(name_or_path: str | Path) -> FitConfig:
             weights = {k: float(v) for k, v in entry.items()}
         except (TypeError, ValueError) as exc:
             raise InputError(path, f"stage {name}: weights must be numbers") from exc
-        stages.append(Stage(name, weights, shape, hands))
+        stages.append(Stage(name, weights, shape, hands, **budget))
     known = {f.name for f in fields(FitConfig)} - {"stages", "name"}
     unknown = set(raw) - known
     if unknown:

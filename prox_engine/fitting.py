@@ -13,8 +13,9 @@ from . import losses
 from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
-from .geometry import matrix_to_axis_angle
+from .geometry import matrix_to_axis_angle, vertex_normals
 from .keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND, SHOULDERS, TORSO_EDGES, Keypoints
+from .scale_search import best_scale
 from .scene import Scene
 
 CAMERA_STAGE_KEYPOINTS = [2, 5, 9, 12]  # shoulders and hips
@@ -74,8 +75,12 @@ class Fitter:
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
         final: dict[str, torch.Tensor] = {}
+        rescaled = warm_start is not None or not self.config.scale_search
         for stage in stages:
             t0 = time.perf_counter()
+            if not rescaled and self._scene_stage(stage):
+                self._rescale(params)
+                rescaled = True
             free = ["transl", "global_orient", "body_pose"]
             if stage.optimize_shape and not frozen_shape:
                 free += self.body.shape_group()
@@ -114,7 +119,8 @@ class Fitter:
         joint_weight[:, RIGHT_HAND] = w.get("hands", 0)
         joint_weight[:, FACE] = w.get("face", 0)
         terms = {"data": losses.keypoint_data(out, self.camera, target,
-                                              (joint_weight * conf) ** 2, cfg.data_rho)}
+                                              (joint_weight * conf) ** 2, cfg.data_rho),
+                 "joint_limits": cfg.joint_limit_weight * body.joint_limits(params)}
         priors = {"pose_prior": body.pose_prior, "shape": body.shape_prior,
                   "bending": body.bending_prior, "hand_prior": body.hand_prior}
         for name, prior in priors.items():
@@ -140,7 +146,8 @@ class Fitter:
         for name, value in params.items():
             value.requires_grad_(name in free)
         variables = [params[n] for n in free]
-        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=self.config.max_iter,
+        optimizer = torch.optim.LBFGS(variables, lr=1.0,
+                                      max_iter=stage.max_iter or self.config.max_iter,
                                       line_search_fn="strong_wolfe", tolerance_grad=1e-7,
                                       tolerance_change=1e-10, history_size=20)
         last: dict[str, torch.Tensor] = {}
@@ -157,7 +164,7 @@ class Fitter:
             return total
 
         previous_loss = math.inf
-        for _ in range(self.config.max_calls):
+        for _ in range(stage.max_calls or self.config.max_calls):
             backup = [v.detach().clone() for v in variables]
             loss = float(optimizer.step(closure).detach())
             if not math.isfinite(loss) or not all(bool(torch.isfinite(v).all())
@@ -173,29 +180,75 @@ class Fitter:
             value.requires_grad_(False)
         return last
 
+    # ------------------------------------------------------------------ scene-aware depth
+    @staticmethod
+    def _scene_stage(stage: Stage) -> bool:
+        return stage.weights.get("penetration", 0) > 0 or stage.weights.get("contact", 0) > 0
+
+    def _rescale(self, params: Params) -> None:
+        """Scale each body about the camera centre to where it best meets the scene (see
+        :mod:`scale_search`), then refit shape and root to the scaled vertices, in place."""
+        cfg, body = self.config, self.body
+        with torch.no_grad():
+            out = body(params)
+            normals = vertex_normals(out.vertices, body.faces)[:, self.contact_ids]
+        scale = best_scale(out.vertices, body.scene_vertices, out.vertices[:, self.contact_ids],
+                           normals, self.scene, cfg.uses("contact"), cfg.uses("penetration"),
+                           cfg.contact_rho, cfg.contact_max_angle, cfg.contact_max_distance)
+        if bool(((scale - 1).abs() < 0.01).all()):
+            return
+        goal = out.vertices * scale[:, None, None]
+        with torch.no_grad():
+            params["transl"] *= scale[:, None]
+        free = ["transl", "global_orient", *body.shape_group()]
+        variables = [params[n] for n in free]
+        for v in variables:
+            v.requires_grad_(True)
+        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.max_iter,
+                                      line_search_fn="strong_wolfe")
+
+        def closure() -> torch.Tensor:
+            self.evaluations += 1
+            optimizer.zero_grad()
+            loss = ((body(params).vertices - goal) ** 2).sum(-1).mean() * 1e4  # cm^2
+            loss.backward()
+            return loss
+
+        optimizer.step(closure)
+        for v in variables:
+            v.requires_grad_(False)
+
     # ------------------------------------------------------------------ initialisation
     def _initialise(self, frames: list[Frame], target: torch.Tensor,
                     conf: torch.Tensor) -> Params:
-        """Upright body facing the camera at the similar-triangles depth, refined by the
-        camera stage; a copy turned by 180 degrees is tried when the shoulders are close
-        in 2D (SMPLify-X), and the better one kept."""
+        """Each of the body's starting postures, upright and facing the camera at the
+        similar-triangles depth, refined by the camera stage; a copy turned by 180 degrees
+        too when the shoulders are close in 2D (SMPLify-X). Per frame, the candidate whose
+        body keypoints reproject best is kept."""
         body = self.body
-        params = body.init_params(len(frames))
-        with torch.no_grad():
-            rest = body(params)
         up = self.scene.up_in_camera() if self.scene is not None else torch.tensor(
             [0.0, -1.0, 0.0])
-        depth = self._torso_depth(rest.keypoints, target, conf)
-        candidates = [self._place(params, rest, target, conf, depth, up, facing=True)]
         width = (target[:, SHOULDERS[0]] - target[:, SHOULDERS[1]]).norm(dim=-1)
-        if bool((width < self.config.flip_shoulder_px).any()) or bool(
-                (conf[:, SHOULDERS[0]] * conf[:, SHOULDERS[1]] == 0).any()):
-            candidates.append(self._place(params, rest, target, conf, depth, up, facing=False))
-        scored = [(self._camera_stage(c, target, conf, depth), c) for c in candidates]
-        losses_ = torch.stack([s for s, _ in scored])  # (C, B)
-        best = losses_.argmin(0)
-        return {k: torch.stack([scored[int(best[b])][1][k][b] for b in range(len(frames))])
-                for k in params}
+        turned = bool((width < self.config.flip_shoulder_px).any()) or bool(
+            (conf[:, SHOULDERS[0]] * conf[:, SHOULDERS[1]] == 0).any())
+        body_weight = torch.zeros_like(conf)
+        body_weight[:, BODY] = conf[:, BODY] ** 2
+        candidates, scores = [], []
+        for posture in body.postures:
+            params = body.init_params(len(frames), posture)
+            with torch.no_grad():
+                rest = body(params)
+            depth = self._torso_depth(rest.keypoints, target, conf)
+            for facing in (True, False) if turned else (True,):
+                candidate = self._place(params, rest, target, conf, depth, up, facing)
+                self._camera_stage(candidate, target, conf, depth)
+                with torch.no_grad():
+                    scores.append(losses.keypoint_data(body(candidate), self.camera, target,
+                                                       body_weight, self.config.data_rho))
+                candidates.append(candidate)
+        best = torch.stack(scores).argmin(0)  # (B,)
+        return {k: torch.stack([candidates[int(best[b])][k][b] for b in range(len(frames))])
+                for k in candidates[0]}
 
     def _torso_depth(self, model_kp: torch.Tensor, target: torch.Tensor,
                      conf: torch.Tensor) -> torch.Tensor:
@@ -241,8 +294,8 @@ class Fitter:
         return new
 
     def _camera_stage(self, params: Params, target: torch.Tensor, conf: torch.Tensor,
-                      depth: torch.Tensor) -> torch.Tensor:
-        """Optimise root rotation and translation on the torso; returns loss per frame."""
+                      depth: torch.Tensor) -> None:
+        """Optimise root rotation and translation on the torso keypoints, in place."""
         weight = torch.zeros_like(conf)
         weight[:, CAMERA_STAGE_KEYPOINTS] = conf[:, CAMERA_STAGE_KEYPOINTS] ** 2
         variables = [params["transl"], params["global_orient"]]
@@ -250,22 +303,17 @@ class Fitter:
             v.requires_grad_(True)
         optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=self.config.max_iter,
                                       line_search_fn="strong_wolfe")
-        per_frame = torch.zeros(target.shape[0])
 
         def closure() -> torch.Tensor:
-            nonlocal per_frame
             self.evaluations += 1
             optimizer.zero_grad()
             out = self.body(params)
             loss = losses.keypoint_data(out, self.camera, target, weight, self.config.data_rho)
             loss = loss + self.config.init_depth_weight * (params["transl"][:, 2] - depth) ** 2
-            per_frame = loss.detach()
             total = loss.sum()
             total.backward()
             return total
 
-        for _ in range(3):
-            optimizer.step(closure)
+        optimizer.step(closure)
         for v in variables:
             v.requires_grad_(False)
-        return per_frame
