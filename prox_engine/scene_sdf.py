@@ -101,9 +101,12 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
     """Build the nearest-normal-signed distance field of a triangle mesh.
 
     ``padding`` (metres) enlarges the scene box on every side so that a body partly outside
-    the scan still samples meaningful distances. Voxels within ``band_voxels`` of a voxel
-    holding surface get exact distances; every other voxel takes the surface point and normal
-    of its nearest surface voxel (an exact Euclidean feature transform over the grid).
+    the scan still samples meaningful distances. Voxels within ``band_voxels`` voxel sizes of
+    a voxel holding surface get exact distances. Every other voxel takes its distance to the
+    surface point of its nearest band voxel and that voxel's sign (an exact Euclidean
+    feature transform in metres): the band separates the two sides of the surface, so the
+    nearest band voxel is always on the voxel's own side, where the surface normal of a
+    far-away corner or edge could point either way.
     """
     from scipy import ndimage
 
@@ -121,9 +124,9 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
     cells = np.clip(np.rint((samples - bmin) / spacing), 0, dim - 1).astype(np.int64)
     empty = np.ones((dim, dim, dim), dtype=bool)
     empty[cells[:, 0], cells[:, 1], cells[:, 2]] = False
-    gap, nearest_cell = ndimage.distance_transform_edt(empty, return_indices=True)
-    near = np.flatnonzero(gap.reshape(-1) <= band_voxels)
-    del gap
+    gap = ndimage.distance_transform_edt(empty, sampling=spacing)
+    near = np.flatnonzero(gap.reshape(-1) <= band_voxels * spacing.min())
+    del gap, empty
 
     axes = [np.linspace(bmin[i], bmax[i], dim) for i in range(3)]
 
@@ -132,28 +135,27 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
         iy, iz = np.divmod(rest, dim)
         return np.stack([axes[0][ix], axes[1][iy], axes[2][iz]], 1)
 
-    # Exact values in the band; keep each band voxel's surface point and normal.
+    # Exact values in the band; keep each band voxel's surface point.
     out = np.empty(dim ** 3, dtype=np.float32)
     foot = np.zeros((dim ** 3, 3), dtype=np.float32)
-    foot_normal = np.zeros((dim ** 3, 3), dtype=np.float32)
     for start in range(0, len(near), chunk):
         flat = near[start:start + chunk]
-        value, point, normal = _exact_signed_distance(centres(flat), tree, sample_face, tri,
-                                                      normals)
-        out[flat], foot[flat], foot_normal[flat] = value, point, normal
+        out[flat], foot[flat] = _exact_signed_distance(centres(flat), tree, sample_face, tri,
+                                                       normals)
 
-    # Far voxels: nearest surface voxel's foot point and normal.
+    # Far voxels: distance to the nearest band voxel's surface point, that voxel's sign.
     is_far = np.ones(dim ** 3, dtype=bool)
     is_far[near] = False
+    _, nearest_band = ndimage.distance_transform_edt(is_far.reshape((dim,) * 3),
+                                                     sampling=spacing, return_indices=True)
     far = np.flatnonzero(is_far)
     del is_far
-    source = np.ravel_multi_index(tuple(nearest_cell.reshape(3, -1)[:, far]), (dim,) * 3)
-    del nearest_cell
+    source = np.ravel_multi_index(tuple(nearest_band.reshape(3, -1)[:, far]), (dim,) * 3)
+    del nearest_band
     for start in range(0, len(far), 1 << 22):
         flat, src = far[start:start + (1 << 22)], source[start:start + (1 << 22)]
-        diff = centres(flat) - foot[src]
-        sign = np.sign(np.einsum("ij,ij->i", diff, foot_normal[src]))
-        out[flat] = np.linalg.norm(diff, axis=1) * np.where(sign == 0, 1.0, sign)
+        distance = np.linalg.norm(centres(flat) - foot[src], axis=1)
+        out[flat] = distance * np.where(out[src] < 0, -1.0, 1.0)
     grid = torch.from_numpy(out.reshape(dim, dim, dim))
     return SignedDistanceField(grid, torch.tensor(bmin, dtype=torch.float32),
                                torch.tensor(bmax, dtype=torch.float32))
@@ -161,8 +163,8 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
 
 def _exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.ndarray,
                            tri: torch.Tensor, normals: torch.Tensor, k: int = 6
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Signed distance, surface point and face normal for each point.
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance and nearest surface point of each point.
 
     The candidates are the faces of the k nearest surface samples. Among faces at the same
     distance (nearest point on a shared edge or vertex) the one whose plane the point is
@@ -182,9 +184,7 @@ def _exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.nd
     sign = torch.sign(plane.gather(1, choice)).squeeze(1)
     sign = torch.where(sign == 0, torch.ones_like(sign), sign)
     rows = torch.arange(len(points))
-    face = cand[rows, choice.squeeze(1)]
-    return ((best.squeeze(1) * sign).numpy(), closest[rows, choice.squeeze(1)].numpy(),
-            normals[face].numpy())
+    return (best.squeeze(1) * sign).numpy(), closest[rows, choice.squeeze(1)].numpy()
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray,
@@ -209,7 +209,7 @@ def mesh_hash(vertices: np.ndarray, faces: np.ndarray, dim: int) -> str:
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(vertices, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
-    h.update(f"dim={dim};v1".encode())
+    h.update(f"dim={dim};v2".encode())
     return h.hexdigest()[:24]
 
 

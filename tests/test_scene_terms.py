@@ -30,6 +30,28 @@ def test_sdf_sign_and_distance_on_closed_box():
     assert torch.allclose(values, expected, atol=0.02)
 
 
+def test_sdf_far_field_keeps_room_air_outside():
+    """Far from every surface, an open furniture box on a floor in a non-cubic room must
+    not flip the air above the floor to inside (the sign comes from the band around the
+    surface, not from a far-away edge's normal) and distances must be metric."""
+    import trimesh
+
+    floor = plane_mesh()  # 4 m x 4 m at z = 0, normal up
+    box = trimesh.creation.box([0.5, 0.5, 0.5])
+    box.vertices += [1.0, 1.0, 0.25]
+    box.update_faces(box.face_normals[:, 2] > -0.5)  # scans never see under furniture
+    mesh = trimesh.util.concatenate([floor, box])
+    sdf = compute_sdf(mesh.vertices, mesh.faces, dim=48, padding=0.5)
+    xs = torch.linspace(-1.9, 1.9, 12)
+    pts = torch.stack(torch.meshgrid(xs, xs, torch.tensor([0.3, 0.8, 0.95]), indexing="ij"),
+                      -1).reshape(-1, 3)
+    in_box = ((pts[:, :2] - torch.tensor([1.0, 1.0])).abs() < 0.4).all(1) & (pts[:, 2] < 0.6)
+    values = sdf(pts[~in_box])
+    assert torch.all(values > 0)
+    above_floor = pts[~in_box][:, 2]
+    assert torch.all(values <= above_floor + 0.03)  # never farther than the floor
+
+
 def test_sdf_sign_on_open_plane():
     """A single-sided plane: above is outside, below is inside (winding numbers fail here)."""
     plane = plane_mesh()
