@@ -36,7 +36,7 @@ class FitConfig:
     init_depth_weight: float = 100.0  # camera stage: keep the similar-triangles depth
     flip_shoulder_px: float = 25.0  # try the 180-degree-turned body below this 2D width
     scale_search: bool = True  # resolve depth against the scene before the scene stages
-    max_iter: int = 30  # L-BFGS iterations per call
+    max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5
     contact_rho: float = 0.05
