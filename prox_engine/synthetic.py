@@ -1,8 +1,8 @@
 """A small synthetic PROX-layout data set: a scan-like room with a chair and a person
 sitting on it, seen by a Kinect-like camera, with OpenPose-like keypoints.
 
-Used by ``make demo`` and the tests. Ground truth goes to ``<out>/ground_truth/``, beside
-the layout the fitter reads, never inside it.
+Used by ``make demo`` and the tests; the helpers also build ``benchmarks.generate``. Ground
+truth goes to ``<out>/ground_truth/``, beside the layout the fitter reads, never inside it.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import trimesh
 
-from .body.anny_body import BODY_BONES, AnnyBody
+from .body.anny_body import BODY_BONES, PHENOTYPES, AnnyBody
 from .geometry import axis_angle_to_matrix
 from .keypoints import BODY, LEFT_HAND, N_BODY, RIGHT_HAND
 from .output import atomic_write_text
@@ -36,24 +36,28 @@ def sitting_pose(phase: float = 0.0) -> dict[str, list[float]]:
     }
 
 
-def _params(body: AnnyBody, pose: dict[str, list[float]], yaw: float,
-            phenotype: dict[str, float]) -> dict[str, torch.Tensor]:
+def body_params(body: AnnyBody, pose: dict[str, list[float]], yaw: float,
+                phenotype: dict[str, float]) -> dict[str, torch.Tensor]:
+    """anny parameters for a pose (bone -> local axis-angle), a yaw about z and a phenotype
+    (names of ``PHENOTYPES`` -> values in [0, 1]; missing ones keep the body's mean)."""
     params = body.init_params(1)
     for bone, value in pose.items():
         params["body_pose"][0, BODY_BONES.index(bone)] = torch.tensor(value)
     params["global_orient"][0] = torch.tensor([0.0, 0.0, yaw])
-    for i, name in enumerate(["gender", "age", "muscle", "weight", "height", "proportions"]):
+    for i, name in enumerate(PHENOTYPES):
         if name in phenotype:
             params["shape"][0, i] = torch.logit(torch.tensor(phenotype[name]))
     return params
 
 
-def _open_box(extents: list[float], centre: list[float]) -> trimesh.Trimesh:
-    """A box surface without its bottom (scans never see under furniture)."""
+def open_box(extents: list[float], centre: list[float], bottom: bool = False) -> trimesh.Trimesh:
+    """A box surface, without its bottom unless ``bottom`` (scans never see under furniture;
+    a table top needs one so that knees under it are outside)."""
     box = trimesh.creation.box(extents)
     box.vertices += centre
-    box.update_faces(box.face_normals[:, 2] > -0.5)
-    box.remove_unreferenced_vertices()
+    if not bottom:
+        box.update_faces(box.face_normals[:, 2] > -0.5)
+        box.remove_unreferenced_vertices()
     return box
 
 
@@ -67,7 +71,7 @@ def _room(extents: list[float]) -> trimesh.Trimesh:
     return room
 
 
-def _look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     """OpenCV camera-to-world pose (x right, y down, z forward) in a z-up world."""
     forward = (target - position) / np.linalg.norm(target - position)
     right = np.cross(forward, [0.0, 0.0, 1.0])
@@ -77,6 +81,76 @@ def _look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
     pose[:3, :3] = np.stack([right, down, forward], 1)
     pose[:3, 3] = position
     return pose
+
+
+def chair(local: np.ndarray, parts: np.ndarray, width: float = 0.5,
+          backrest: bool = True) -> trimesh.Trimesh:
+    """A seat (and backrest) fitted to sitting body points ``local`` (N, 3) labelled with
+    their ``parts``, in the body's frame (facing -y, left +x, centred on x = 0).
+
+    The seat runs from just behind the calves to the back, its top just under every body
+    point over it; the backrest is just behind the back: the person touches but does not
+    penetrate the chair."""
+    legs = np.isin(parts, ["left_shin", "right_shin", "left_foot", "right_foot"])
+    seat_front = float(local[legs, 1].max()) + 0.01
+    over = (np.abs(local[:, 0]) < width / 2) & (local[:, 1] > seat_front)
+    seat_top = float(local[over, 2].min()) - 0.003
+    back_y = float(local[over & (local[:, 2] > seat_top + 0.05), 1].max()) + 0.003
+    floor = float(local[:, 2].min())
+    seat_depth = back_y - seat_front
+    seat_h = seat_top - floor
+    boxes = [open_box([width, seat_depth, seat_h], [0.0, back_y - seat_depth / 2,
+                                                    floor + seat_h / 2])]
+    if backrest:
+        boxes.append(open_box([width, 0.04, 0.55], [0.0, back_y + 0.02, seat_top + 0.3]))
+    return trimesh.util.concatenate(boxes)
+
+
+def transform(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Points (..., 3) through a 4x4 rigid transform."""
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def project(points_cam: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (N, 2) of camera-frame points with ``INTRINSICS``."""
+    f, c = np.asarray(INTRINSICS["f"]), np.asarray(INTRINSICS["c"])
+    return points_cam[:, :2] / points_cam[:, 2:] * f + c
+
+
+def openpose_person(uv: np.ndarray, conf: np.ndarray) -> dict[str, list[float]]:
+    """An OpenPose ``people`` entry (body and hands, no face) from the 118-point layout."""
+    return {
+        "pose_keypoints_2d": _flat(uv[BODY], conf[BODY]),
+        "hand_left_keypoints_2d": _flat(uv[LEFT_HAND], conf[LEFT_HAND]),
+        "hand_right_keypoints_2d": _flat(uv[RIGHT_HAND], conf[RIGHT_HAND]),
+    }
+
+
+def frame_name(t: int) -> str:
+    """PROX-style name of frame ``t`` (0-based)."""
+    return f"s001_frame_{t + 1:05d}__00.00.{t:02d}.000"
+
+
+def write_scene(out: Path, scene: str, mesh: trimesh.Trimesh, cam2world: np.ndarray) -> None:
+    """The scan, camera pose and (shared) calibration of one scene in the PROX layout."""
+    (out / "scenes").mkdir(parents=True, exist_ok=True)
+    mesh.export(out / "scenes" / f"{scene}.ply")
+    for folder, name, content in (("cam2world", f"{scene}.json", cam2world.tolist()),
+                                  ("calibration", "Color.json", INTRINSICS)):
+        (out / folder).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / folder / name, json.dumps(content))
+
+
+def write_frame(out: Path, rec: str, frame: str, people: list[dict],
+                vertices_cam: np.ndarray, joints_cam: np.ndarray) -> None:
+    """One frame's OpenPose keypoints and its ground truth (camera-frame vertices and
+    BODY_25 joints) in ``ground_truth/<rec>/<frame>.npz``."""
+    for folder in ("recordings", "keypoints", "ground_truth"):
+        (out / folder / rec).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "keypoints" / rec / f"{frame}_keypoints.json",
+                      json.dumps({"version": 1.3, "people": people}))
+    np.savez(out / "ground_truth" / rec / f"{frame}.npz",
+             vertices=vertices_cam.astype(np.float32), joints=joints_cam.astype(np.float32))
 
 
 def make_sitting_dataset(out: Path, frames: int = 3, seed: int = 0, noise_px: float = 2.0,
@@ -94,7 +168,7 @@ def make_sitting_dataset(out: Path, frames: int = 3, seed: int = 0, noise_px: fl
     world_vertices = []
     gt_params = []
     for t in range(frames):
-        params = _params(body, sitting_pose(0.6 * t), yaw, phenotype)
+        params = body_params(body, sitting_pose(0.6 * t), yaw, phenotype)
         with torch.no_grad():
             world_vertices.append(body(params).vertices[0].numpy())
         gt_params.append(params)
@@ -109,70 +183,29 @@ def make_sitting_dataset(out: Path, frames: int = 3, seed: int = 0, noise_px: fl
     rot = axis_angle_to_matrix(torch.tensor([0.0, 0.0, yaw])).numpy()
     local = (world_vertices[0] - shift) @ rot  # undo the yaw: body faces -y, left is +x
     main = body.scene_vertices.numpy()
-    parts = np.asarray(body.vertex_parts)
-    body_local = local[main]
-    width = 0.5
-    # Seat from just behind the calves to the back, its top just under every body vertex
-    # over it; backrest just behind the back: the person touches but does not penetrate.
-    legs = np.isin(parts[main], ["left_shin", "right_shin", "left_foot", "right_foot"])
-    seat_front = float(body_local[legs, 1].max()) + 0.01
-    over = (np.abs(body_local[:, 0]) < width / 2) & (body_local[:, 1] > seat_front)
-    seat_top = float(body_local[over, 2].min()) - 0.003
-    back_y = float(body_local[over & (body_local[:, 2] > seat_top + 0.05), 1].max()) + 0.003
-    floor = float(body_local[:, 2].min())
-    seat_depth = back_y - seat_front
-    seat_y = back_y - seat_depth / 2
-    seat_h = seat_top - floor
-    parts_local = [
-        _open_box([width, seat_depth, seat_h], [0.0, seat_y, floor + seat_h / 2]),
-        _open_box([width, 0.04, 0.55], [0.0, back_y + 0.02, seat_top + 0.3]),
-    ]
-    chair = trimesh.util.concatenate(parts_local)
-    chair.vertices = chair.vertices @ rot.T + shift
+    seat = chair(local[main], np.asarray(body.vertex_parts)[main])
+    seat.vertices = seat.vertices @ rot.T + shift
     room = _room([6.0, 6.0, 3.0])
-    table = _open_box([1.2, 0.7, 0.75], [-1.8, -1.2, 0.375])
-    scene = trimesh.util.concatenate([room, chair, table])
+    table = open_box([1.2, 0.7, 0.75], [-1.8, -1.2, 0.375])
+    scene = trimesh.util.concatenate([room, seat, table])
     scene = scene.subdivide_to_size(face_size)
     scene.vertices += rng.normal(0.0, 0.002, scene.vertices.shape)
 
     # Camera 2.6 m in front of the person at 1.3 m height.
     facing = rot @ np.array([0.0, -1.0, 0.0])
     centre = world_vertices[0][main].mean(0)
-    cam2world = _look_at(centre + 2.6 * facing + np.array([0.4, 0.0, 1.3 - centre[2]]), centre)
-
-    (out / "scenes").mkdir(parents=True, exist_ok=True)
-    scene.export(out / "scenes" / f"{SCENE}.ply")
-    for folder, name, content in (("cam2world", f"{SCENE}.json", cam2world.tolist()),
-                                  ("calibration", "Color.json", INTRINSICS)):
-        (out / folder).mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / folder / name, json.dumps(content))
-    (out / "recordings" / rec).mkdir(parents=True, exist_ok=True)
-    kp_dir = out / "keypoints" / rec
-    kp_dir.mkdir(parents=True, exist_ok=True)
-    gt_dir = out / "ground_truth" / rec
-    gt_dir.mkdir(parents=True, exist_ok=True)
+    cam2world = look_at(centre + 2.6 * facing + np.array([0.4, 0.0, 1.3 - centre[2]]), centre)
+    write_scene(out, SCENE, scene, cam2world)
     world2cam = np.linalg.inv(cam2world)
-    f, c = INTRINSICS["f"], INTRINSICS["c"]
     for t, params in enumerate(gt_params):
         with torch.no_grad():
-            out_t = body(params)
-        kp_world = out_t.keypoints[0].numpy()  # the body's frame is the world frame here
-        kp_cam = kp_world @ world2cam[:3, :3].T + world2cam[:3, 3]
-        uv = kp_cam[:, :2] / kp_cam[:, 2:] * f + c
-        uv += rng.normal(0.0, noise_px, uv.shape)
+            kp_cam = transform(body(params).keypoints[0].numpy(), world2cam)
+        uv = project(kp_cam) + rng.normal(0.0, noise_px, (len(kp_cam), 2))
         conf = rng.uniform(0.65, 0.95, len(uv))
-        people = {
-            "pose_keypoints_2d": _flat(uv[BODY], conf[BODY]),
-            "hand_left_keypoints_2d": _flat(uv[LEFT_HAND], conf[LEFT_HAND] * 0.6),
-            "hand_right_keypoints_2d": _flat(uv[RIGHT_HAND], conf[RIGHT_HAND] * 0.6),
-        }
-        frame = f"s001_frame_{t + 1:05d}__00.00.{t:02d}.000"
-        atomic_write_text(kp_dir / f"{frame}_keypoints.json",
-                          json.dumps({"version": 1.3, "people": [people]}))
-        verts_cam = world_vertices[t] @ world2cam[:3, :3].T + world2cam[:3, 3]
-        joints_cam = kp_cam[:N_BODY]
-        np.savez(gt_dir / f"{frame}.npz", vertices=verts_cam.astype(np.float32),
-                 joints=joints_cam.astype(np.float32))
+        conf[LEFT_HAND] *= 0.6
+        conf[RIGHT_HAND] *= 0.6
+        write_frame(out, rec, frame_name(t), [openpose_person(uv, conf)],
+                    transform(world_vertices[t], world2cam), kp_cam[:N_BODY])
     return out
 
 
