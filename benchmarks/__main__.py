@@ -1,0 +1,125 @@
+"""The quantitative benchmark: generate scenes with ground-truth bodies, fit them with each
+configuration, and print a table like the paper's Table 1 (also written as JSON and
+Markdown under ``--out``).
+
+    .venv/bin/python -m benchmarks --seed 1 --frames 6 --out bench-seed1
+    .venv/bin/python -m benchmarks --small          # the quick version the tests run
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+from pathlib import Path
+
+import torch
+
+from prox_engine.body.anny_body import AnnyBody
+from prox_engine.config import load_config
+from prox_engine.output import atomic_write_text
+from prox_engine.pipeline import fit_recording
+
+from .evaluate import aggregate, evaluate_recording
+from .generate import KINDS, make_benchmark
+
+SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
+CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox", "prox" + SEQUENCE)
+SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}
+COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f"),
+           ("p_v2v", "p.V2V", ".1f"), ("penetrating_share", "pen. %", "pct"),
+           ("penetration_mean_depth_m", "pen. depth cm", "cm"),
+           ("contact_recovered", "contact %", "pct"), ("seconds", "s/frame", ".2f")]
+
+
+def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
+        sdf_dim: int = 256, log=print) -> dict:
+    """Generate the data, fit every recording with every configuration, evaluate; returns
+    {"settings", "overall": {config: metrics}, "per_kind": {kind: {config: metrics}}}."""
+    torch.set_num_threads(1)
+    body = AnnyBody.load()
+    data = out / "data"
+    started = time.perf_counter()
+    recordings = make_benchmark(data, seed=seed, frames=frames, kinds=kinds, body=body)
+    log(f"generated {len(recordings)} recordings in {time.perf_counter() - started:.0f} s")
+    kind_of = {rec: json.loads((data / "ground_truth" / rec / "meta.json").read_text())["kind"]
+               for rec in recordings}
+    rows: dict[str, list[dict]] = {c: [] for c in configs}
+    for config_name in configs:
+        sequence = config_name.endswith(SEQUENCE)
+        config = load_config(config_name.removesuffix(SEQUENCE))
+        config.sdf_dim = sdf_dim
+        for rec in recordings:
+            fitted = out / "fits" / config_name
+            fit_recording(data, rec, fitted, config, body, sequence=sequence)
+            per_frame = evaluate_recording(data, rec, fitted, body, sdf_dim)
+            rows[config_name] += [{**r, "kind": kind_of[rec]} for r in per_frame]
+            log(f"{config_name:<16} {rec:<24} " + " ".join(
+                f"{k} {v:.3g}" for k, v in aggregate(per_frame).items() if v is not None))
+    return {
+        "settings": {"seed": seed, "frames": frames, "kinds": kinds, "sdf_dim": sdf_dim,
+                     "threads": torch.get_num_threads(),
+                     "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024},
+        "overall": {c: aggregate(r) for c, r in rows.items()},
+        "per_kind": {k: {c: aggregate([x for x in r if x["kind"] == k]) for c, r in rows.items()}
+                     for k in kinds},
+        "frames": rows,
+    }
+
+
+def _cell(value, fmt: str) -> str:
+    if value is None:
+        return "-"
+    if fmt == "pct":
+        return f"{100 * value:.1f}"
+    if fmt == "cm":
+        return f"{100 * value:.1f}"
+    return format(value, fmt)
+
+
+def markdown(result: dict) -> str:
+    """The overall table and one per scene kind, errors in mm."""
+    header = "| config | " + " | ".join(c[1] for c in COLUMNS) + " |\n"
+    header += "|---" * (len(COLUMNS) + 1) + "|\n"
+
+    def table(metrics: dict) -> str:
+        return header + "".join(
+            f"| {name} | " + " | ".join(_cell(m.get(k), f) for k, _, f in COLUMNS) + " |\n"
+            for name, m in metrics.items() if m)
+
+    s = result["settings"]
+    text = (f"Seed {s['seed']}, {s['frames']} frames per recording, SDF {s['sdf_dim']}^3, "
+            f"{s['threads']} thread, peak memory {s['peak_memory_mb']:.0f} MB. "
+            "Errors in mm; pen. % = share of vertices more than 1 cm inside the scene; "
+            "contact % = ground-truth contact parts recovered.\n\n### All scenes\n\n")
+    text += table(result["overall"])
+    for kind, metrics in result["per_kind"].items():
+        text += f"\n### {kind}\n\n" + table(metrics)
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("bench_output"))
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS))
+    parser.add_argument("--sdf-dim", type=int, default=256)
+    parser.add_argument("--small", action="store_true",
+                        help="one sitting recording, 2 frames, rgb and prox, 128^3 SDF")
+    args = parser.parse_args(argv)
+    options = {"kinds": args.kinds, "frames": args.frames, "configs": args.configs,
+               "sdf_dim": args.sdf_dim, **(SMALL if args.small else {})}
+    result = run(args.out, args.seed, **options)
+    text = markdown(result)
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out / "results.json", json.dumps(result, indent=1))
+    atomic_write_text(args.out / "results.md", text)
+    print(text)
+    print(f"written: {args.out / 'results.json'}, {args.out / 'results.md'}")
+
+
+if __name__ == "__main__":
+    main()
