@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 export PROX_THREADS ?= 1
 
-.PHONY: setup demo test clean
+.PHONY: setup demo test bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,5 +24,9 @@ demo: setup
 test: setup
 	$(BIN)/python -m pytest -q tests
 
+# The full benchmark (about 25 minutes on 2 cores; not part of the tests).
+bench: setup
+	$(BIN)/python -m benchmarks --seed 1 --frames 6 --out bench_output
+
 clean:
-	rm -rf $(VENV) demo_output .pytest_cache
+	rm -rf $(VENV) demo_output bench_output .pytest_cache

@@ -353,8 +353,8 @@ def ground_truth_check(out: Path, rec: str, body: AnnyBody | None = None) -> dic
                            process=False)
     crop.remove_unreferenced_vertices()
     padding = max(0.1, *(crop.bounds[0] - lo), *(hi - crop.bounds[1]))  # box holds body
-    # Exact values at every voxel: beyond its band compute_sdf signs by the nearest
-    # surface voxel, which can put points high above a table edge "inside".
+    # Exact values at every voxel, so the check does not rest on the far-field
+    # approximation of the SDF the fitter uses.
     sdf = compute_sdf(crop.vertices, crop.faces, dim=64, padding=padding, band_voxels=64)
     scene = Scene(crop.vertices, crop.faces, cam2world, sdf)
     penetration, close = [], []
@@ -370,11 +370,6 @@ def ground_truth_check(out: Path, rec: str, body: AnnyBody | None = None) -> dic
             touching[part] += int(near.any())
     return {"penetration": float(np.mean(penetration)),
             "contact": float(np.concatenate(close).mean()), "touching": touching}
-
-
-def ground_truth_penetration(out: Path, rec: str, body: AnnyBody | None = None) -> float:
-    """Mean share of the ground-truth body's scene vertices more than 1 cm inside the scan."""
-    return ground_truth_check(out, rec, body)["penetration"]
 
 
 def main() -> None:

@@ -50,8 +50,10 @@ class Fitter:
         if needs_scene and scene is None:
             raise ValueError(f"configuration '{config.name}' needs a scene")
         self.body, self.camera, self.config, self.scene = body, camera, config, scene
-        parts = [body.contact_parts[p] for p in config.contact_parts if p in body.contact_parts]
-        self.contact_ids = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.long)
+        self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
+                                 if p in body.contact_parts]
+        self.contact_ids = (torch.cat(self.contact_part_ids) if self.contact_part_ids
+                            else torch.zeros(0, dtype=torch.long))
         self.evaluations = 0  # objective evaluations so far, for benchmarks
 
     # ------------------------------------------------------------------ public API
@@ -191,10 +193,11 @@ class Fitter:
         cfg, body = self.config, self.body
         with torch.no_grad():
             out = body(params)
-            normals = vertex_normals(out.vertices, body.faces)[:, self.contact_ids]
-        scale = best_scale(out.vertices, body.scene_vertices, out.vertices[:, self.contact_ids],
-                           normals, self.scene, cfg.uses("contact"), cfg.uses("penetration"),
-                           cfg.contact_rho, cfg.contact_max_angle, cfg.contact_max_distance)
+            normals = vertex_normals(out.vertices, body.faces)
+        scale = best_scale(out.vertices, normals, body.scene_vertices, self.contact_part_ids,
+                           self.scene,
+                           cfg.uses("contact"), cfg.uses("penetration"), cfg.contact_rho,
+                           cfg.contact_max_angle, cfg.contact_max_distance)
         if bool(((scale - 1).abs() < 0.01).all()):
             return
         goal = out.vertices * scale[:, None, None]

@@ -12,36 +12,39 @@ import torch
 
 from .scene import Scene
 
-SCALES = torch.exp(torch.linspace(math.log(0.7), math.log(1.4), 57))
-PENETRATION_SCALE = 0.02  # a vertex 2 cm inside costs as much as a missed contact
+SCALES = torch.exp(torch.linspace(math.log(0.5), math.log(2.0), 97))
+PENETRATION_SCALE = 0.02  # a vertex 2 cm inside counts fully as penetrating
 SCALE_SIGMA = 0.06  # spread of adult body size around the fitted (prior-mean) size
-PRIOR_WEIGHT = 0.02
+PRIOR_WEIGHT = 0.005  # breaks ties where the scene says nothing
 
 
 @torch.no_grad()
-def best_scale(vertices: torch.Tensor, scene_vertices: torch.Tensor, contact_points: torch.Tensor,
-               contact_normals: torch.Tensor, scene: Scene, use_contact: bool,
+def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
+               contact_parts: list[torch.Tensor], scene: Scene, use_contact: bool,
                use_penetration: bool, rho: float, max_angle_deg: float,
                max_distance: float) -> torch.Tensor:
-    """Per frame, the scale about the camera centre that minimises missed contacts plus
-    penetration plus a weak prior on body size; ``vertices`` (B, V, 3) in camera
-    coordinates, ``scene_vertices`` (V,) bool, ``contact_points``/``contact_normals``
-    (B, C, 3). Returns (B,) scales."""
+    """Per frame, the scale about the camera centre that minimises the share of contact
+    parts not touching the scene (each part by its best vertex) plus the share of
+    vertices inside it plus a weak prior on body size. ``vertices`` and ``normals``
+    (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool, ``contact_parts``
+    vertex indices per part. Returns (B,) scales."""
     scales = SCALES[:, None, None]
     best = []
     for b in range(vertices.shape[0]):
         cost = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
         if use_penetration:
-            points = scales * vertices[b, scene_vertices]
-            depth = torch.relu(-scene.signed_distance(points))
+            depth = torch.relu(-scene.signed_distance(scales * vertices[b, scene_vertices]))
             cost = cost + (depth / PENETRATION_SCALE).clamp(max=1.0).mean(1)
-        if use_contact and contact_points.shape[1]:
-            points = scales * contact_points[b]
-            dist = scene.signed_distance(points).abs()
-            normals = scene.world_normals(contact_normals[b]).expand_as(points)
-            facing = -(normals * scene.sdf_normals(points)).sum(-1)
-            near = (facing > math.cos(math.radians(max_angle_deg))) & (dist < max_distance)
-            robust = dist ** 2 / (dist ** 2 + rho ** 2)
-            cost = cost + torch.where(near, robust, torch.ones_like(robust)).mean(1)
+        if use_contact and contact_parts:
+            misses = []
+            for ids in contact_parts:
+                points = scales * vertices[b, ids]
+                dist = scene.signed_distance(points).abs()
+                facing = -(scene.world_normals(normals[b, ids]) * scene.sdf_normals(points)
+                           ).sum(-1)
+                near = (facing > math.cos(math.radians(max_angle_deg))) & (dist < max_distance)
+                robust = dist ** 2 / (dist ** 2 + rho ** 2)
+                misses.append(torch.where(near, robust, torch.ones_like(robust)).min(1).values)
+            cost = cost + torch.stack(misses).mean(0)
         best.append(SCALES[int(cost.argmin())])
     return torch.stack(best)
