@@ -132,3 +132,26 @@ def test_scene_frame_transform():
     sdf = compute_sdf(plane.vertices, plane.faces, dim=64, padding=0.5)
     scene = Scene(plane.vertices, plane.faces, cam2world, sdf, sample_spacing=0.05)
     assert abs(scene.signed_distance(torch.tensor([[0.0, 0.0, -0.8]])).item() - 0.2) < 0.01
+
+
+def test_scale_search_puts_feet_back_on_the_floor(body):
+    """A standing body scaled 1.2x about the camera (same pixels, 20 % too far and too big)
+    has its feet through the floor; the search finds the scale that undoes it."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.scale_search import best_scale
+
+    floor = plane_mesh(size=10.0)
+    cam2world = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 1.0], [0, 0, 0, 1]])
+    scene = Scene(floor.vertices, floor.faces, cam2world,
+                  compute_sdf(floor.vertices, floor.faces, dim=96, padding=0.5),
+                  sample_spacing=0.05)
+    with torch.no_grad():
+        world = body(body.init_params(1)).vertices[0]
+    world = world + torch.tensor([0.0, 3.0, 0.0]) - torch.tensor([0, 0, world[:, 2].min()])
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    camera = (world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation
+    far = 1.2 * camera[None]
+    parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand")]
+    scale = best_scale(far, vertex_normals(far, body.faces), body.scene_vertices, parts, scene,
+                       True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
+    assert abs(float(scale) * 1.2 - 1.0) < 0.03

@@ -24,6 +24,7 @@ class BodyModel(ABC, torch.nn.Module):
     name: str
     faces: torch.Tensor  # (F, 3) int64
     keypoint_mask: torch.Tensor  # (118,) bool: which OpenPose points the model defines
+    keypoint_weights: torch.Tensor  # (25, V): BODY_25 joints as weighted sums of vertices
     contact_parts: dict[str, torch.Tensor]  # part name -> vertex indices
     vertex_parts: list[str]  # per-vertex part label
     scene_vertices: torch.Tensor  # (V,) bool: vertices used by scene terms (no eyes/tongue)
