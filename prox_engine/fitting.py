@@ -195,9 +195,8 @@ class Fitter:
             out = body(params)
             normals = vertex_normals(out.vertices, body.faces)
         scale = best_scale(out.vertices, normals, body.scene_vertices, self.contact_part_ids,
-                           self.scene,
-                           cfg.uses("contact"), cfg.uses("penetration"), cfg.contact_rho,
-                           cfg.contact_max_angle, cfg.contact_max_distance)
+                           self.scene, cfg.uses("contact"), cfg.uses("penetration"),
+                           cfg.contact_rho, cfg.contact_max_angle, cfg.contact_max_distance)
         if bool(((scale - 1).abs() < 0.01).all()):
             return
         goal = out.vertices * scale[:, None, None]
