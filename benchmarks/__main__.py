@@ -18,7 +18,8 @@ import torch
 from prox_engine.body.anny_body import AnnyBody
 from prox_engine.config import load_config
 from prox_engine.output import atomic_write_text
-from prox_engine.pipeline import fit_recording
+from prox_engine.dataset import Recording
+from prox_engine.pipeline import fit_recording, load_scene
 
 from .evaluate import aggregate, evaluate_recording
 from .generate import KINDS, make_benchmark
@@ -44,6 +45,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     log(f"generated {len(recordings)} recordings in {time.perf_counter() - started:.0f} s")
     kind_of = {rec: json.loads((data / "ground_truth" / rec / "meta.json").read_text())["kind"]
                for rec in recordings}
+    scenes = {rec: load_scene(Recording(data, rec), sdf_dim) for rec in recordings}
     rows: dict[str, list[dict]] = {c: [] for c in configs}
     for config_name in configs:
         sequence = config_name.endswith(SEQUENCE)
@@ -52,7 +54,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         for rec in recordings:
             fitted = out / "fits" / config_name
             fit_recording(data, rec, fitted, config, body, sequence=sequence)
-            per_frame = evaluate_recording(data, rec, fitted, body, sdf_dim)
+            per_frame = evaluate_recording(data, rec, fitted, body, scenes[rec])
             rows[config_name] += [{**r, "kind": kind_of[rec]} for r in per_frame]
             log(f"{config_name:<16} {rec:<24} " + " ".join(
                 f"{k} {v:.3g}" for k, v in aggregate(per_frame).items() if v is not None))

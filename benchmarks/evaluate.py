@@ -15,7 +15,6 @@ import trimesh
 
 from prox_engine import metrics
 from prox_engine.body.base import BodyModel
-from prox_engine.dataset import Recording, load_cam2world, load_scene_mesh
 from prox_engine.scene import Scene
 
 
@@ -37,44 +36,38 @@ def _mean_error_mm(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def frame_metrics(fit_vertices: np.ndarray, gt_vertices: np.ndarray, body: BodyModel,
-                  scene: Scene) -> dict:
-    """PJE, V2V and their Procrustes-aligned versions (mm), penetration of the fit, and
-    which ground-truth contact parts the fit recovers."""
+                  fit_stats: dict, gt_contact: set[str]) -> dict:
+    """PJE, V2V and their Procrustes-aligned versions (mm); the fit's penetration and which
+    ground-truth contact parts it recovers, from its per-frame ``stats`` in summary.json."""
     weights = body.keypoint_weights.numpy()
     fit_joints, gt_joints = weights @ fit_vertices, weights @ gt_vertices
-    fit_t = torch.as_tensor(fit_vertices, dtype=torch.float32)
-    gt_t = torch.as_tensor(gt_vertices, dtype=torch.float32)
-    pen = metrics.penetration_stats(fit_t, body, scene)
-    gt_contact = set(metrics.contact_parts(gt_t, body, scene))
-    fit_contact = set(metrics.contact_parts(fit_t, body, scene))
     return {
         "pje": _mean_error_mm(fit_joints, gt_joints),
         "v2v": _mean_error_mm(fit_vertices, gt_vertices),
         "p_pje": _mean_error_mm(procrustes(fit_joints, gt_joints), gt_joints),
         "p_v2v": _mean_error_mm(procrustes(fit_vertices, gt_vertices), gt_vertices),
-        "penetrating_share": pen["penetrating_share"],
-        "penetration_mean_depth_m": pen["mean_depth_m"],
+        "penetrating_share": fit_stats["penetrating_share"],
+        "penetration_mean_depth_m": fit_stats["mean_depth_m"],
         "gt_contacts": len(gt_contact),
-        "contacts_recovered": len(gt_contact & fit_contact),
+        "contacts_recovered": len(gt_contact & set(fit_stats["contact_parts"])),
     }
 
 
 def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel,
-                       sdf_dim: int = 256) -> list[dict]:
-    """Metrics of every fitted frame of ``recording`` (``fitted`` = the ``--out`` folder)."""
-    rec = Recording(Path(data), recording)
-    scene = Scene.load(*load_scene_mesh(rec.scene_path), load_cam2world(rec.cam2world_path),
-                       rec.sdf_paths, dim=sdf_dim)
+                       scene: Scene) -> list[dict]:
+    """Metrics of every fitted frame of ``recording`` (``fitted`` = the ``--out`` folder)
+    against the ground truth, ``scene`` being the recording's (for its contacts)."""
     summary = json.loads((Path(fitted) / recording / "summary.json").read_text())
     rows = []
     for frame in summary["frames"]:
         name = frame["frame"]
         gt = np.load(Path(data) / "ground_truth" / recording / f"{name}.npz")["vertices"]
+        gt_contact = set(metrics.contact_parts(torch.as_tensor(gt), body, scene))
         mesh = trimesh.load(Path(fitted) / recording / "meshes" / name / "000.ply",
                             process=False)
         rows.append({"frame": name, "seconds": frame["seconds"],
                      **frame_metrics(np.asarray(mesh.vertices, dtype=np.float64),
-                                     gt.astype(np.float64), body, scene)})
+                                     gt.astype(np.float64), body, frame, gt_contact)})
     return rows
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import torch
@@ -54,7 +55,6 @@ class Fitter:
                                  if p in body.contact_parts]
         self.contact_ids = (torch.cat(self.contact_part_ids) if self.contact_part_ids
                             else torch.zeros(0, dtype=torch.long))
-        self.evaluations = 0  # objective evaluations so far, for benchmarks
 
     # ------------------------------------------------------------------ public API
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
@@ -155,7 +155,6 @@ class Fitter:
         last: dict[str, torch.Tensor] = {}
 
         def closure() -> torch.Tensor:
-            self.evaluations += 1
             optimizer.zero_grad()
             out = self.body(params)
             terms = self._terms(stage, out, params, target, conf, depth, previous)
@@ -202,17 +201,20 @@ class Fitter:
         goal = out.vertices * scale[:, None, None]
         with torch.no_grad():
             params["transl"] *= scale[:, None]
-        free = ["transl", "global_orient", *body.shape_group()]
-        variables = [params[n] for n in free]
+        self._minimise([params[n] for n in ["transl", "global_orient", *body.shape_group()]],
+                       lambda: ((body(params).vertices - goal) ** 2).sum(-1).mean() * 1e4)
+
+    def _minimise(self, variables: list[torch.Tensor],
+                  objective: Callable[[], torch.Tensor]) -> None:
+        """One L-BFGS call (strong Wolfe line search) on ``variables``, in place."""
         for v in variables:
             v.requires_grad_(True)
-        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.max_iter,
+        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=self.config.max_iter,
                                       line_search_fn="strong_wolfe")
 
         def closure() -> torch.Tensor:
-            self.evaluations += 1
             optimizer.zero_grad()
-            loss = ((body(params).vertices - goal) ** 2).sum(-1).mean() * 1e4  # cm^2
+            loss = objective()
             loss.backward()
             return loss
 
@@ -300,22 +302,11 @@ class Fitter:
         """Optimise root rotation and translation on the torso keypoints, in place."""
         weight = torch.zeros_like(conf)
         weight[:, CAMERA_STAGE_KEYPOINTS] = conf[:, CAMERA_STAGE_KEYPOINTS] ** 2
-        variables = [params["transl"], params["global_orient"]]
-        for v in variables:
-            v.requires_grad_(True)
-        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=self.config.max_iter,
-                                      line_search_fn="strong_wolfe")
 
-        def closure() -> torch.Tensor:
-            self.evaluations += 1
-            optimizer.zero_grad()
-            out = self.body(params)
-            loss = losses.keypoint_data(out, self.camera, target, weight, self.config.data_rho)
-            loss = loss + self.config.init_depth_weight * (params["transl"][:, 2] - depth) ** 2
-            total = loss.sum()
-            total.backward()
-            return total
+        def objective() -> torch.Tensor:
+            loss = losses.keypoint_data(self.body(params), self.camera, target, weight,
+                                        self.config.data_rho)
+            depth_error = (params["transl"][:, 2] - depth) ** 2
+            return (loss + self.config.init_depth_weight * depth_error).sum()
 
-        optimizer.step(closure)
-        for v in variables:
-            v.requires_grad_(False)
+        self._minimise([params["transl"], params["global_orient"]], objective)

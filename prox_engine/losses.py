@@ -46,16 +46,26 @@ def contact(out: BodyOutput, body: BodyModel, scene: Scene, vertex_ids: torch.Te
                           max_distance)
 
 
-def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rho: float,
-                   max_angle_deg: float, max_distance: float) -> torch.Tensor:
-    """Robust distance to the scene surface (|SDF|) of points (B, N, 3) within
-    ``max_distance`` of it whose outward normal faces the surface (within
-    ``max_angle_deg`` of the SDF gradient's opposite), averaged over those points as in
-    PROX; 0 when none qualifies. The SDF makes this one grid lookup per point instead of a
+def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
+                      max_angle_deg: float, max_distance: float
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distance to the scene surface (|SDF|) of points (..., N, 3) with outward body
+    normals, and which of them qualify for contact (no gradient): within ``max_distance``
+    of the surface with the normal facing it (within ``max_angle_deg`` of the opposite of
+    the SDF gradient). The SDF makes this one grid lookup per point instead of a
     nearest-triangle search, exact on planes and close to it elsewhere."""
     dist = scene.signed_distance(points).abs()
     facing = -(scene.world_normals(normals) * scene.sdf_normals(points)).sum(-1)
     valid = ((facing > math.cos(math.radians(max_angle_deg))) & (dist < max_distance)).detach()
+    return dist, valid
+
+
+def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rho: float,
+                   max_angle_deg: float, max_distance: float) -> torch.Tensor:
+    """Robust distance to the scene surface of the points (B, N, 3) that qualify for
+    contact (:func:`contact_distances`), averaged over those points as in PROX; 0 when
+    none qualifies."""
+    dist, valid = contact_distances(points, normals, scene, max_angle_deg, max_distance)
     robust = gmof(dist ** 2, rho) / rho ** 2
     return (robust * valid).sum(1) / valid.sum(1).clamp_min(1)
 

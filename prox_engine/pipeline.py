@@ -46,10 +46,8 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     if not names:
         raise InputError(rec.keypoint_dir, "no *_keypoints.json files")
     camera = load_calibration(rec.calibration_path)
-    cam2world = load_cam2world(rec.cam2world_path)
     t0 = time.perf_counter()
-    scene = Scene.load(*load_scene_mesh(rec.scene_path), cam2world, rec.sdf_paths,
-                       dim=config.sdf_dim)
+    scene = load_scene(rec, config.sdf_dim)
     scene_seconds = time.perf_counter() - t0
     fitter = Fitter(body, camera, config, scene)
 
@@ -85,6 +83,12 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     summary = _summarise(recording, config, sequence, frames_summary, failures, scene_seconds)
     write_json(Path(out) / recording / "summary.json", summary)
     return RecordingResult(recording, summary, failures)
+
+
+def load_scene(rec: Recording, sdf_dim: int) -> Scene:
+    """The recording's scene in its camera frame (its PROX SDF, else the SDF cache)."""
+    return Scene.load(*load_scene_mesh(rec.scene_path), load_cam2world(rec.cam2world_path),
+                      rec.sdf_paths, dim=sdf_dim)
 
 
 def _load_frame(rec: Recording, name: str, camera, config: FitConfig) -> Frame:

@@ -10,6 +10,7 @@ import math
 
 import torch
 
+from .losses import contact_distances, gmof
 from .scene import Scene
 
 SCALES = torch.exp(torch.linspace(math.log(0.5), math.log(2.0), 97))
@@ -39,11 +40,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
             misses = []
             for ids in contact_parts:
                 points = scales * vertices[b, ids]
-                dist = scene.signed_distance(points).abs()
-                facing = -(scene.world_normals(normals[b, ids]) * scene.sdf_normals(points)
-                           ).sum(-1)
-                near = (facing > math.cos(math.radians(max_angle_deg))) & (dist < max_distance)
-                robust = dist ** 2 / (dist ** 2 + rho ** 2)
+                dist, near = contact_distances(points, normals[b, ids].expand_as(points), scene,
+                                               max_angle_deg, max_distance)
+                robust = gmof(dist ** 2, rho) / rho ** 2
                 misses.append(torch.where(near, robust, torch.ones_like(robust)).min(1).values)
             cost = cost + torch.stack(misses).mean(0)
         best.append(SCALES[int(cost.argmin())])
