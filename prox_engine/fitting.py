@@ -46,11 +46,13 @@ class Fitter:
     """Fits one body model to frames seen by one camera, optionally inside a scene."""
 
     def __init__(self, body: BodyModel, camera: Camera, config: FitConfig,
-                 scene: Scene | None = None) -> None:
+                 scene: Scene | None = None,
+                 on_stage: Callable[[str], None] | None = None) -> None:
         needs_scene = config.uses("penetration") or config.uses("contact")
         if needs_scene and scene is None:
             raise ValueError(f"configuration '{config.name}' needs a scene")
         self.body, self.camera, self.config, self.scene = body, camera, config, scene
+        self.on_stage = on_stage  # told each stage's name as it starts (progress, cancelling)
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.contact_ids = (torch.cat(self.contact_part_ids) if self.contact_part_ids
@@ -67,6 +69,7 @@ class Fitter:
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}
         if warm_start is None:
+            self._announce("initialise")
             params = self._initialise(frames, target, conf)
             stage_seconds["camera"] = time.perf_counter() - start
             stages = self.config.stages
@@ -79,6 +82,7 @@ class Fitter:
         final: dict[str, torch.Tensor] = {}
         rescaled = warm_start is not None or not self.config.scale_search
         for stage in stages:
+            self._announce(stage.name)
             t0 = time.perf_counter()
             if not rescaled and self._scene_stage(stage):
                 self._rescale(params)
@@ -101,6 +105,10 @@ class Fitter:
             losses={k: float(v[i]) for k, v in final.items()}, seconds=elapsed,
             stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()})
             for i, f in enumerate(frames)]
+
+    def _announce(self, stage: str) -> None:
+        if self.on_stage is not None:
+            self.on_stage(stage)
 
     # ------------------------------------------------------------------ objective
     def _targets(self, frames: list[Frame]) -> tuple[torch.Tensor, torch.Tensor]:

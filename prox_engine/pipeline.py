@@ -33,8 +33,13 @@ class RecordingResult:
 
 def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body: BodyModel,
                   max_frames: int | None = None, sequence: bool = False,
-                  progress: Progress | None = None) -> RecordingResult:
+                  progress: Progress | None = None,
+                  on_stage: Callable[[str], None] | None = None) -> RecordingResult:
     """Fit the frames of one recording and write ``OUT/<rec>/...``.
+
+    ``progress(done, total, frame)`` is called after each batch of frames, ``on_stage(name)``
+    as each step starts ("scene", then the fitter's stages); an exception raised by either
+    stops the fit.
 
     Problems with the recording's shared files (calibration, camera pose, scene) raise
     :class:`InputError`; a bad frame is reported in the summary and skipped.
@@ -46,10 +51,12 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     if not names:
         raise InputError(rec.keypoint_dir, "no *_keypoints.json files")
     camera = load_calibration(rec.calibration_path)
+    if on_stage:
+        on_stage("scene")
     t0 = time.perf_counter()
     scene = load_scene(rec, config.sdf_dim)
     scene_seconds = time.perf_counter() - t0
-    fitter = Fitter(body, camera, config, scene)
+    fitter = Fitter(body, camera, config, scene, on_stage)
 
     failures: list[tuple[str, str]] = []
     frames_summary: list[dict] = []
