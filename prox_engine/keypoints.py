@@ -53,7 +53,7 @@ class Keypoints:
 
 def _points(person: dict, key: str, count: int, path: Path) -> np.ndarray | None:
     values = person.get(key)
-    if values is None or len(values) == 0:
+    if values is None or values == []:
         return None
     if not isinstance(values, list) or len(values) != 3 * count:
         got = len(values) if isinstance(values, list) else type(values).__name__
@@ -61,7 +61,7 @@ def _points(person: dict, key: str, count: int, path: Path) -> np.ndarray | None
                                f"confidence), got {got}")
     try:
         array = np.asarray(values, dtype=np.float64).reshape(count, 3)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise InputError(path, f"'{key}' contains non-numeric values") from exc
     if not np.isfinite(array).all():
         raise InputError(path, f"'{key}' contains NaN or infinite values")
@@ -92,21 +92,30 @@ def parse_person(person: dict, path: Path) -> Keypoints:
                      has_face=face is not None)
 
 
+def parse_people(content: bytes | str, path: Path | str) -> list[Keypoints]:
+    """Every person of an OpenPose JSON document (possibly none); ``path`` names it in errors."""
+    try:
+        data = json.loads(content.decode("utf-8") if isinstance(content, bytes) else content)
+    except (ValueError, RecursionError) as exc:  # bad UTF-8 or JSON, absurd numbers or nesting
+        raise InputError(path, f"not valid JSON ({exc})") from exc
+    people = data.get("people") if isinstance(data, dict) else None
+    if not isinstance(people, list):
+        raise InputError(path, "no 'people' list")
+    return [parse_person(p, path) for p in people]
+
+
 def load_keypoints(path: Path) -> Keypoints:
     """Read an OpenPose JSON file and return its main person (largest total confidence)."""
     path = Path(path)
     try:
-        content = json.loads(path.read_text())
+        content = path.read_bytes()
     except FileNotFoundError as exc:
         raise InputError(path, "file not found") from exc
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"not valid JSON ({exc})") from exc
-    people = content.get("people") if isinstance(content, dict) else None
-    if not isinstance(people, list):
-        raise InputError(path, "no 'people' list")
-    if not people:
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc})") from exc
+    persons = parse_people(content, path)
+    if not persons:
         raise InputError(path, "'people' is empty: nobody detected in this frame")
-    persons = [parse_person(p, path) for p in people]
     best = max(persons, key=lambda k: float(k.confidence[BODY].sum()))
     if best.confidence[BODY].sum() <= 0:
         raise InputError(path, "all body keypoints have zero confidence")
