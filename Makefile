@@ -5,8 +5,16 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 export PROX_THREADS ?= 1
+# Debian packages: Redis for the job queue (tests start their own server).
+APT_PACKAGES := redis-server
+SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 
-.PHONY: setup demo test bench clean
+.PHONY: system setup demo serve test bench loadcheck clean
+
+system:
+	@dpkg -s $(APT_PACKAGES) >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends \
+	  $(APT_PACKAGES); }
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -15,11 +23,16 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-setup: $(STAMP)
+setup: system $(STAMP)
 	$(BIN)/prox setup
 
+# Fits the bundled synthetic sequence through a local service (Redis, API, 2 workers).
 demo: setup
 	$(BIN)/prox demo --out demo_output
+
+# Redis, the API on :8000 and one worker, until Ctrl-C.
+serve: setup
+	$(BIN)/prox serve
 
 test: setup
 	$(BIN)/python -m pytest -q tests
@@ -28,5 +41,9 @@ test: setup
 bench: setup
 	$(BIN)/python -m benchmarks --seed 1 --frames 6 --out bench_output
 
+# 50 small jobs on 2 workers, then a worker killed mid-job (a few minutes; not a test).
+loadcheck: setup
+	$(BIN)/python -m service.loadcheck --jobs 50 --workers 2 --out loadcheck_output
+
 clean:
-	rm -rf $(VENV) demo_output bench_output .pytest_cache
+	rm -rf $(VENV) demo_output bench_output loadcheck_output .pytest_cache

@@ -7,6 +7,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from .errors import InputError
 
@@ -89,26 +90,97 @@ def _print_summary(rows: list[dict], config: str, sequence: bool, out: Path) -> 
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Generate the synthetic sitting scene and fit it with rgb and prox."""
-    from .body.anny_body import AnnyBody
-    from .config import load_config
-    from .pipeline import fit_recording
+    """Generate the synthetic sitting scene and fit it with rgb and prox through a local
+    service: real HTTP upload, queue, workers and download."""
+    import secrets
+
+    from service.client import ApiClient
+    from service.local import LocalStack
+    from service.storage import zip_tree
+
     from .synthetic import make_sitting_dataset
 
-    _threads()
     out = Path(args.out)
-    body = AnnyBody.load()
-    data = make_sitting_dataset(out / "data", frames=args.frames, body=body)
+    data = make_sitting_dataset(out / "data", frames=args.frames)
+    archive = out / "upload.zip"
+    zip_tree(data, archive)
+    token = secrets.token_urlsafe(16)
     rows = {}
-    for name in ("rgb", "prox"):
-        config = load_config(name)
-        result = fit_recording(data, "Synthetic_00000_01", out / name, config, body)
-        rows[name] = result.summary
-        _print_summary([result.summary], name, False, out / name)
+    with LocalStack(out / "service", f"demo:{token}", workers=2) as stack:
+        print(f"service running at {stack.url} (API docs: {stack.url}/docs)")
+        client = ApiClient(stack.url, token)
+        jobs = {name: client.submit(archive, config=name) for name in ("rgb", "prox")}
+        for name, job in jobs.items():
+            print(f"submitted {archive} as job {job['id']} (config {name})")
+        show = _progress_printer()
+        for name, job in jobs.items():
+            final = client.wait(job["id"], on_update=show)
+            if final["status"] != "finished":
+                print(f"job {job['id']} {final['status']}: {final['error']}", file=sys.stderr)
+                return 1
+            client.download(job["id"], out / name)
+            summary = json.loads((out / name / "Synthetic_00000_01" / "summary.json")
+                                 .read_text())
+            rows[name] = summary
+            _print_summary([summary], name, False, out / name)
     print("\n" + json.dumps({k: {"penetrating_share": v["penetration"]["mean_penetrating_share"],
                                  "seconds_per_frame": v["seconds_per_frame"]}
                              for k, v in rows.items()}, indent=1))
+    print(f"\nresults downloaded to {out / 'rgb'} and {out / 'prox'} "
+          f"(service logs in {out / 'service' / 'logs'})")
     return 0
+
+
+def _progress_printer() -> Callable[[dict], None]:
+    """Prints a job's status line each time it changes."""
+    last: dict[str, str] = {}
+
+    def show(job: dict) -> None:
+        p = job["progress"]
+        line = (f"  job {job['id'][:8]} {job['config']:>4}: {job['status']:<9} "
+                f"{p['frames_done']}/{p['frames_total']} frames  {p['stage'] or ''}")
+        if last.get(job["id"]) != line:
+            last[job["id"]] = line
+            print(line, flush=True)
+
+    return show
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Redis (unless one is configured), the API and workers on this machine."""
+    import secrets
+    import signal
+
+    from service.local import LocalStack
+
+    token = None
+    tokens = os.environ.get("PROX_API_TOKENS")
+    if not tokens and not os.environ.get("PROX_TOKENS_FILE"):
+        token = args.token or secrets.token_urlsafe(16)
+        tokens = f"local:{token}"
+    from .assets import home
+
+    stack = LocalStack(args.root or home() / "service", tokens or "", workers=args.workers,
+                       port=args.port,
+                       redis_url=args.redis_url or os.environ.get("PROX_REDIS_URL"),
+                       env={k: os.environ[k] for k in ("PROX_STORAGE_DIR",)
+                            if k in os.environ})
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop cleanly on SIGTERM
+    with stack:
+        print(f"prox service at {stack.url} (API docs {stack.url}/docs), "
+              f"{args.workers} worker(s), Redis {stack.redis_url}, files in {stack.root}")
+        if token:
+            print(f"API token: {token}   (curl -H 'Authorization: Bearer {token}' "
+                  f"{stack.url}/v1/jobs)")
+        print("Ctrl-C stops it.", flush=True)
+        try:
+            while all(p.poll() is None for p in [stack.api, *stack.workers]):
+                time.sleep(1)
+            print("a service process exited; see the logs in "
+                  f"{stack.root / 'logs'}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:
+            return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,10 +204,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
     p.set_defaults(func=cmd_fit)
 
-    p = sub.add_parser("demo", help="synthetic sitting scene, fitted with rgb and prox")
+    p = sub.add_parser("demo", help="synthetic sitting scene, fitted with rgb and prox "
+                                    "through a local service")
     p.add_argument("--out", type=Path, default=Path("demo_output"))
     p.add_argument("--frames", type=int, default=2)
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("serve", help="run Redis, the API and workers on this machine")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=int, default=1, help="worker processes (one per core)")
+    p.add_argument("--root", type=Path, default=None,
+                   help="job files and logs (default $PROX_HOME/service)")
+    p.add_argument("--redis-url", help="use this Redis instead of starting one")
+    p.add_argument("--token", help="API token when PROX_API_TOKENS is not set "
+                                   "(default: a random one, printed)")
+    p.set_defaults(func=cmd_serve)
 
     args = parser.parse_args(argv)
     try:

@@ -1,0 +1,134 @@
+"""A whole service on one machine: Redis (started if none is given), the API and N workers,
+as child processes. Used by ``prox serve``, ``prox demo``, the tests and the load check."""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _stop(process: subprocess.Popen, sig: int = signal.SIGTERM, wait: float = 10.0) -> None:
+    if process.poll() is None:
+        process.send_signal(sig)
+        try:
+            process.wait(wait)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+class LocalStack:
+    """Starts on ``__enter__`` (or :meth:`start`), stops everything on exit."""
+
+    def __init__(self, root: Path, tokens: str, workers: int = 1, port: int | None = None,
+                 redis_url: str | None = None, env: dict[str, str] | None = None) -> None:
+        self.root = Path(root)
+        self.tokens, self.worker_count, self.redis_url = tokens, workers, redis_url
+        self.port = port or free_port()
+        self.extra_env = env or {}
+        self.redis: subprocess.Popen | None = None
+        self.api: subprocess.Popen | None = None
+        self.workers: list[subprocess.Popen] = []
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    @property
+    def storage_dir(self) -> Path:
+        return self.root / "storage"
+
+    def __enter__(self) -> LocalStack:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self, timeout: float = 60.0) -> None:
+        (self.root / "logs").mkdir(parents=True, exist_ok=True)
+        try:
+            if self.redis_url is None:
+                self._start_redis()
+            self.env = {**os.environ, "PROX_REDIS_URL": self.redis_url,
+                        "PROX_STORAGE_DIR": str(self.storage_dir),
+                        "PROX_API_TOKENS": self.tokens, **self.extra_env}
+            self.api = self._spawn("api", [sys.executable, "-m", "uvicorn", "service.app:app",
+                                           "--host", "127.0.0.1", "--port", str(self.port),
+                                           "--log-level", "warning"])
+            for _ in range(self.worker_count):
+                self.add_worker()
+            self._wait_healthy(timeout)
+        except BaseException:
+            self.stop()
+            raise
+
+    def add_worker(self) -> subprocess.Popen:
+        name = f"worker-{len(self.workers)}"
+        worker = self._spawn(name, [sys.executable, "-m", "worker", "--name",
+                                    f"{name}-{self.port}"])
+        self.workers.append(worker)
+        return worker
+
+    def stop(self) -> None:
+        """Workers first (a warm shutdown lets a running frame end), then API, then Redis."""
+        for worker in self.workers:
+            if worker.poll() is None:
+                worker.send_signal(signal.SIGTERM)
+                worker.send_signal(signal.SIGTERM)  # twice: cold shutdown, do not wait
+        for process in [*self.workers, self.api, self.redis]:
+            if process is not None:
+                _stop(process)
+
+    def log(self, name: str) -> str:
+        path = self.root / "logs" / f"{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""
+
+    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen:
+        log = (self.root / "logs" / f"{name}.log").open("ab")
+        return subprocess.Popen(argv, env=self.env if name != "redis" else None, stdout=log,
+                                stderr=subprocess.STDOUT, cwd=Path(__file__).parents[1])
+
+    def _start_redis(self) -> None:
+        server = shutil.which("redis-server")
+        if server is None:
+            raise RuntimeError("redis-server not found: install Debian's redis-server "
+                               "(`make setup` does) or give a Redis URL (PROX_REDIS_URL)")
+        port = free_port()
+        data = self.root / "redis"
+        data.mkdir(parents=True, exist_ok=True)
+        self.redis = self._spawn("redis", [server, "--port", str(port), "--bind", "127.0.0.1",
+                                           "--save", "", "--appendonly", "no",
+                                           "--dir", str(data)])
+        self.redis_url = f"redis://127.0.0.1:{port}/0"
+
+    def _wait_healthy(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        last = "no answer"
+        while time.monotonic() < deadline:
+            for name, process in [("api", self.api), ("redis", self.redis)]:
+                if process is not None and process.poll() is not None:
+                    raise RuntimeError(f"{name} exited at start-up:\n{self.log(name)[-2000:]}")
+            try:
+                answer = httpx.get(f"{self.url}/healthz", timeout=2)
+                if answer.status_code == 200 and (answer.json()["workers"]
+                                                  >= self.worker_count):
+                    return
+                last = answer.text
+            except httpx.HTTPError as exc:
+                last = str(exc)
+            time.sleep(0.2)
+        raise RuntimeError(f"service not healthy after {timeout:.0f} s ({last})")

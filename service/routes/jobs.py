@@ -1,0 +1,171 @@
+"""``/v1/jobs``: submit a sequence, follow it, download its results, cancel or delete it."""
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Annotated, Iterator
+
+from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
+from fastapi.responses import StreamingResponse
+
+from prox_engine.config import CONFIG_DIR, load_config
+
+from ..deps import OwnerDep, SettingsDep, StorageDep, StoreDep
+from ..errors import ApiError
+from ..jobs import TERMINAL, JobOptions
+from ..schemas import JobPage, JobView, job_view
+from ..storage import Storage
+from ..upload import UploadError, UploadLimits, validate_upload
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+CONFIGS = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+_CHUNK = 1 << 20
+
+
+def _base(request: Request) -> str:
+    return str(request.base_url).rstrip("/")
+
+
+def _own_job(store, job_id: str, owner: str) -> dict:
+    """The job if it exists and belongs to the caller (else 404: others' jobs are unseen)."""
+    record = store.get(job_id)
+    if record is None or record["owner"] != owner:
+        raise ApiError(404, f"no job {job_id}")
+    return record
+
+
+def _stream(storage: Storage, key: str) -> Iterator[bytes]:
+    with storage.open(key) as handle:
+        while chunk := handle.read(_CHUNK):
+            yield chunk
+
+
+@router.post("", status_code=202, response_model=JobView,
+             summary="Submit a sequence (a zip in the PROX layout) for fitting")
+def submit(request: Request, response: Response, owner: OwnerDep, settings: SettingsDep,
+           store: StoreDep, storage: StorageDep,
+           file: Annotated[UploadFile, File(description="zip of a PROX-layout directory")],
+           config: Annotated[str, Form(description=f"one of {', '.join(CONFIGS)}")] = "prox",
+           frames: Annotated[int | None, Form(ge=1, description="fit only the first N "
+                                                                "frames of each recording")] = None,
+           sequence: Annotated[bool, Form(description="warm-start each frame from the "
+                                                      "previous one")] = False) -> JobView:
+    if config not in CONFIGS:
+        raise ApiError(422, f"unknown config '{config}' (choose one of {', '.join(CONFIGS)})")
+    limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
+                          settings.max_recordings, settings.max_frames)
+    job_id = store.new_id()
+    with tempfile.NamedTemporaryFile(suffix=".zip") as upload:
+        shutil.copyfileobj(file.file, upload, _CHUNK)
+        upload.flush()
+        try:
+            summary = validate_upload(Path(upload.name), limits, frames,
+                                      needs_depth=load_config(config).uses("depth"))
+        except UploadError as exc:
+            raise ApiError(exc.status, str(exc), file=exc.file) from exc
+        storage.put_file(f"jobs/{job_id}/upload.zip", Path(upload.name))
+        size = Path(upload.name).stat().st_size
+    record = store.create(job_id, owner, JobOptions(config, frames, sequence),
+                          summary.recordings, size)
+    view = job_view(record, _base(request))
+    response.headers["Location"] = view.links["self"]
+    return view
+
+
+@router.get("", response_model=JobPage, summary="The caller's jobs, newest first")
+def list_jobs(request: Request, owner: OwnerDep, store: StoreDep,
+              offset: Annotated[int, Query(ge=0)] = 0,
+              limit: Annotated[int, Query(ge=1, le=100)] = 20) -> JobPage:
+    records, total = store.list(owner, offset, limit)
+    base = _base(request)
+    following = (f"{base}/v1/jobs?offset={offset + limit}&limit={limit}"
+                 if offset + limit < total else None)
+    return JobPage(jobs=[job_view(r, base) for r in records], total=total, offset=offset,
+                   limit=limit, next=following)
+
+
+@router.get("/{job_id}", response_model=JobView, summary="Status, progress and timings")
+def get_job(job_id: str, request: Request, owner: OwnerDep, store: StoreDep) -> JobView:
+    return job_view(_own_job(store, job_id, owner), _base(request))
+
+
+def _finished(store, job_id: str, owner: str) -> dict:
+    record = _own_job(store, job_id, owner)
+    if record["status"] != "finished":
+        raise ApiError(409, f"job {job_id} is {record['status']}: results exist only for "
+                            "finished jobs")
+    return record
+
+
+@router.get("/{job_id}/results", summary="A zip of the results directory",
+            response_class=StreamingResponse,
+            responses={200: {"content": {"application/zip": {}}}})
+def results(job_id: str, owner: OwnerDep, store: StoreDep,
+            storage: StorageDep) -> StreamingResponse:
+    _finished(store, job_id, owner)
+    key = f"jobs/{job_id}/results.zip"
+    headers = {"Content-Disposition": f'attachment; filename="prox-{job_id}.zip"',
+               "Content-Length": str(storage.size(key))}
+    return StreamingResponse(_stream(storage, key), media_type="application/zip",
+                             headers=headers)
+
+
+def _frame_key(store, storage: Storage, job_id: str, owner: str, frame: str,
+               recording: str | None, kind: str) -> str:
+    record = _finished(store, job_id, owner)
+    folder, name = {"mesh": ("meshes", "000.ply"), "params": ("results", "000.json")}[kind]
+    candidates = [recording] if recording else list(record["recordings"])
+    if recording and recording not in record["recordings"]:
+        raise ApiError(404, f"job {job_id} has no recording {recording}")
+    if frame in (".", ".."):
+        raise ApiError(404, f"no frame {frame}")
+    keys = [f"jobs/{job_id}/results/{rec}/{folder}/{frame}/{name}" for rec in candidates]
+    found = [k for k in keys if storage.size(k) is not None]
+    if not found:
+        raise ApiError(404, f"job {job_id} has no fitted frame {frame}")
+    if len(found) > 1:
+        raise ApiError(409, f"frame {frame} is in several recordings: add ?recording=NAME")
+    return found[0]
+
+
+RecordingQuery = Annotated[str | None, Query(description="needed when several recordings "
+                                                         "have a frame of this name")]
+
+
+@router.get("/{job_id}/frames/{frame}/mesh", summary="One frame's fitted mesh (PLY, camera "
+            "frame)", response_class=StreamingResponse,
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def frame_mesh(job_id: str, frame: str, owner: OwnerDep, store: StoreDep, storage: StorageDep,
+               recording: RecordingQuery = None) -> StreamingResponse:
+    key = _frame_key(store, storage, job_id, owner, frame, recording, "mesh")
+    return StreamingResponse(_stream(storage, key), media_type="application/octet-stream",
+                             headers={"Content-Disposition":
+                                      f'attachment; filename="{frame}.ply"'})
+
+
+@router.get("/{job_id}/frames/{frame}/params", summary="One frame's fitted parameters, "
+            "losses and statistics")
+def frame_params(job_id: str, frame: str, owner: OwnerDep, store: StoreDep,
+                 storage: StorageDep, recording: RecordingQuery = None) -> dict:
+    key = _frame_key(store, storage, job_id, owner, frame, recording, "params")
+    with storage.open(key) as handle:
+        return json.load(handle)
+
+
+@router.delete("/{job_id}", status_code=204, responses={202: {"model": JobView}},
+               summary="Cancel a queued or running job; delete a finished one and its files")
+def delete_job(job_id: str, request: Request, owner: OwnerDep, store: StoreDep,
+               storage: StorageDep) -> Response:
+    record = _own_job(store, job_id, owner)
+    if record["status"] not in TERMINAL:
+        cancelled = store.cancel(job_id)
+        if cancelled is not None:
+            view = job_view(cancelled, _base(request))
+            return Response(view.model_dump_json(), status_code=202,
+                            media_type="application/json")
+        # It ended meanwhile: delete it like any finished job.
+    if store.delete(job_id):
+        storage.delete_prefix(f"jobs/{job_id}")
+    return Response(status_code=204)

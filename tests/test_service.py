@@ -1,0 +1,318 @@
+"""The batch service over real HTTP: a real redis-server, the uvicorn app and an RQ worker
+in their own processes (service.local.LocalStack), real files on disk.
+
+The tests share one stack and run in file order; the ones that kill workers come last.
+"""
+from __future__ import annotations
+
+import io
+import os
+import signal
+import stat
+import time
+import zipfile
+from pathlib import Path
+
+import httpx
+import pytest
+import trimesh
+
+from service.local import LocalStack
+from service.storage import zip_tree
+
+TOKENS = {"alice": "alice-secret-token", "bob": "bob-secret-token-2"}
+REC = "Synthetic_00000_01"
+LIMITS = {"PROX_MAX_UPLOAD_MB": "8", "PROX_MAX_EXTRACTED_MB": "40", "PROX_MAX_FRAMES": "4",
+          "PROX_MAX_RECORDINGS": "2", "PROX_JOB_STALE_S": "15", "PROX_REAP_INTERVAL_S": "1"}
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    root = tmp_path_factory.mktemp("service")
+    tokens = ",".join(f"{name}:{token}" for name, token in TOKENS.items())
+    with LocalStack(root, tokens, workers=1, env=LIMITS) as running:
+        yield running
+
+
+def client(stack: LocalStack, user: str | None = "alice") -> httpx.Client:
+    headers = {"Authorization": f"Bearer {TOKENS[user]}"} if user else {}
+    return httpx.Client(base_url=stack.url, headers=headers, timeout=60)
+
+
+@pytest.fixture(scope="module")
+def dataset_zip(sitting_data, tmp_path_factory) -> Path:
+    archive = tmp_path_factory.mktemp("upload") / "sitting.zip"
+    zip_tree(sitting_data, archive)
+    return archive
+
+
+def submit(http: httpx.Client, archive: Path | bytes, **form: str) -> httpx.Response:
+    content = archive if isinstance(archive, bytes) else Path(archive).read_bytes()
+    return http.post("/v1/jobs", data=form,
+                     files={"file": ("upload.zip", content, "application/zip")})
+
+
+def wait(http: httpx.Client, job_id: str, until, timeout: float = 300) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = http.get(f"/v1/jobs/{job_id}").json()
+        if until(job):
+            return job
+        time.sleep(0.2)
+    raise AssertionError(f"job {job_id} never reached the state; last: {job}")
+
+
+def ended(job: dict) -> bool:
+    return job["status"] in ("finished", "failed", "cancelled")
+
+
+def running(job: dict) -> bool:
+    return job["status"] == "running" and job["progress"]["stage"] not in (None, "preparing")
+
+
+def edited_zip(source: Path, drop: str | None = None,
+               replace: dict[str, bytes] | None = None) -> bytes:
+    """A copy of ``source`` without ``drop`` and with some members' content replaced."""
+    replace = replace or {}
+    out = io.BytesIO()
+    with zipfile.ZipFile(source) as src, zipfile.ZipFile(out, "w") as dst:
+        for info in src.infolist():
+            if info.filename != drop:
+                dst.writestr(info.filename, replace.get(info.filename, src.read(info)))
+    return out.getvalue()
+
+
+def keypoint_member(archive: Path, index: int = 0) -> str:
+    names = sorted(n for n in zipfile.ZipFile(archive).namelist() if n.startswith("keypoints/"))
+    return names[index]
+
+
+# ---------------------------------------------------------------------------- happy path
+def test_health_and_docs(stack):
+    health = httpx.get(f"{stack.url}/healthz").json()
+    assert health == {"status": "ok", "api": "ok", "redis": "ok", "workers": 1,
+                      "queued": health["queued"]}
+    spec = httpx.get(f"{stack.url}/openapi.json").json()
+    assert {"/v1/jobs", "/v1/jobs/{job_id}", "/v1/jobs/{job_id}/results",
+            "/v1/jobs/{job_id}/frames/{frame}/mesh", "/v1/jobs/{job_id}/frames/{frame}/params",
+            "/healthz"} <= set(spec["paths"])
+    assert httpx.get(f"{stack.url}/docs").status_code == 200
+
+
+def test_full_job_upload_to_download(stack, dataset_zip, body, tmp_path):
+    http = client(stack)
+    answer = submit(http, dataset_zip, config="rgb", frames="1")
+    assert answer.status_code == 202, answer.text
+    job = answer.json()
+    assert job["status"] == "queued" and job["recordings"] == {REC: 1}
+    assert answer.headers["location"] == job["links"]["self"]
+    seen = set()
+    job = wait(http, job["id"], lambda j: seen.add(j["progress"]["stage"]) or ended(j))
+    assert job["status"] == "finished", job
+    assert seen - {None} <= {"preparing", "scene", "initialise", "global", "body", "detail",
+                             "final", "publishing"} and len(seen - {None}) >= 2
+    assert job["progress"]["frames_done"] == job["progress"]["frames_total"] == 1
+    assert job["progress"]["fraction"] == 1.0 and job["error"] is None
+    timings = job["timings"]
+    assert timings["queued_seconds"] >= 0 and timings["run_seconds"] > 0
+    assert 0 < timings["seconds_per_frame"] < timings["run_seconds"]
+
+    results = http.get(job["links"]["results"])
+    assert results.status_code == 200
+    assert results.headers["content-type"] == "application/zip"
+    names = zipfile.ZipFile(io.BytesIO(results.content)).namelist()
+    frame = next(n.split("/")[2] for n in names if n.startswith(f"{REC}/results/"))
+    assert {f"{REC}/summary.json", f"{REC}/results/{frame}/000.json",
+            f"{REC}/meshes/{frame}/000.ply"} <= set(names)
+
+    mesh = http.get(f"/v1/jobs/{job['id']}/frames/{frame}/mesh")
+    assert mesh.status_code == 200
+    (tmp_path / "m.ply").write_bytes(mesh.content)
+    ply = trimesh.load(tmp_path / "m.ply", process=False)
+    assert len(ply.vertices) == body.faces.max() + 1 and len(ply.faces) == len(body.faces)
+    params = http.get(f"/v1/jobs/{job['id']}/frames/{frame}/params").json()
+    assert params["frame"] == frame and params["config"] == "rgb"
+    assert http.get(f"/v1/jobs/{job['id']}/frames/nope/params").status_code == 404
+    assert http.get(f"/v1/jobs/{job['id']}/frames/{frame}/mesh",
+                    params={"recording": "Other_1"}).status_code == 404
+
+    listed = http.get("/v1/jobs").json()
+    assert listed["jobs"][0]["id"] == job["id"]
+
+    assert http.delete(f"/v1/jobs/{job['id']}").status_code == 204
+    assert http.get(f"/v1/jobs/{job['id']}").status_code == 404
+    assert not (stack.storage_dir / "jobs" / job["id"]).exists()
+
+
+def test_list_is_newest_first_and_paginated(stack, dataset_zip):
+    http = client(stack)
+    ids = [submit(http, dataset_zip, config="rgb", frames="1").json()["id"] for _ in range(2)]
+    for job_id in ids:
+        http.delete(f"/v1/jobs/{job_id}")  # cancel: keep the worker free
+    first = http.get("/v1/jobs", params={"limit": 1}).json()
+    assert first["jobs"][0]["id"] == ids[1] and first["total"] >= 2
+    assert first["next"] is not None
+    second = httpx.get(first["next"], headers=http.headers).json()
+    assert second["jobs"][0]["id"] == ids[0]
+    assert http.get("/v1/jobs", params={"limit": 1000}).status_code == 422
+
+
+# ---------------------------------------------------------------------------- cancel, fail
+def test_cancel_a_running_and_a_queued_job(stack, dataset_zip):
+    http = client(stack)
+    first = submit(http, dataset_zip, config="prox").json()
+    second = submit(http, dataset_zip, config="rgb", frames="1").json()
+    wait(http, first["id"], running)
+    answer = http.delete(f"/v1/jobs/{second['id']}")  # still queued behind the first
+    assert answer.status_code == 202 and answer.json()["status"] == "cancelled"
+    answer = http.delete(f"/v1/jobs/{first['id']}")
+    assert answer.status_code == 202 and answer.json()["status"] == "cancelled"
+    time.sleep(8)  # the worker stops at its next stage and must not resurrect either job
+    for job_id in (first["id"], second["id"]):
+        job = http.get(f"/v1/jobs/{job_id}").json()
+        assert job["status"] == "cancelled"
+        assert http.get(f"/v1/jobs/{job_id}/results").status_code == 409
+    assert http.get(f"/v1/jobs/{second['id']}").json()["timings"]["started_at"] is None
+    assert httpx.get(f"{stack.url}/healthz").json()["workers"] == 1
+
+
+def test_failed_job_says_why_and_the_worker_survives(stack, dataset_zip):
+    http = client(stack)
+    broken = edited_zip(dataset_zip, replace={"scenes/Synthetic.ply": b"ply\nnonsense\n"})
+    answer = submit(http, broken, config="rgb", frames="1")
+    assert answer.status_code == 202, answer.text
+    job = wait(http, answer.json()["id"], ended, timeout=120)
+    assert job["status"] == "failed"
+    assert job["error"].startswith("scenes/Synthetic.ply: cannot read mesh"), job["error"]
+    assert http.get(f"/v1/jobs/{job['id']}/results").status_code == 409
+    assert httpx.get(f"{stack.url}/healthz").json()["workers"] == 1
+
+
+# ---------------------------------------------------------------------------- auth
+def test_tokens_see_only_their_own_jobs(stack, dataset_zip):
+    alice, bob = client(stack, "alice"), client(stack, "bob")
+    anonymous = client(stack, None)
+    answer = anonymous.get("/v1/jobs")
+    assert answer.status_code == 401 and "bearer" in answer.json()["detail"]
+    assert answer.headers["www-authenticate"] == "Bearer"
+    wrong = anonymous.get("/v1/jobs", headers={"Authorization": "Bearer not-a-token"})
+    assert wrong.status_code == 401 and wrong.json()["detail"] == "invalid API token"
+    assert submit(anonymous, dataset_zip).status_code == 401
+
+    job = submit(alice, dataset_zip, config="rgb", frames="1").json()
+    for path in ("", "/results", "/frames/x/mesh", "/frames/x/params"):
+        assert bob.get(f"/v1/jobs/{job['id']}{path}").status_code == 404
+    assert bob.delete(f"/v1/jobs/{job['id']}").status_code == 404
+    assert job["id"] not in [j["id"] for j in bob.get("/v1/jobs").json()["jobs"]]
+    assert alice.get(f"/v1/jobs/{job['id']}").json()["status"] in ("queued", "running")
+    alice.delete(f"/v1/jobs/{job['id']}")
+
+
+# ---------------------------------------------------------------------------- bad uploads
+def _member(name: str, mode: int | None = None) -> zipfile.ZipInfo:
+    info = zipfile.ZipInfo(name)
+    if mode is not None:
+        info.external_attr = mode << 16
+    return info
+
+
+def _with_extra(source: Path, info: zipfile.ZipInfo, data: bytes) -> bytes:
+    out = io.BytesIO(edited_zip(source))
+    with zipfile.ZipFile(out, "a") as zf:
+        zf.writestr(info, data)
+    return out.getvalue()
+
+
+def _with_copies(source: Path, count: int, recordings: bool = False) -> bytes:
+    """Extra frames (or recordings of the same scene) copied from the first frame."""
+    out = io.BytesIO(edited_zip(source))
+    member = keypoint_member(source)
+    with zipfile.ZipFile(source) as src:
+        data = src.read(member)
+    with zipfile.ZipFile(out, "a") as zf:
+        for i in range(count):
+            name = (f"keypoints/{REC}{i}/f_keypoints.json" if recordings
+                    else member.replace("_keypoints.json", f"{i}_keypoints.json"))
+            zf.writestr(name, data)
+    return out.getvalue()
+
+
+def _bomb() -> bytes:
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("keypoints/A_1/f_keypoints.json", b"\0" * (48 << 20))
+    return out.getvalue()
+
+
+BAD_UPLOADS = {
+    "not a zip": (lambda z: b"this is not a zip file", {}, 400, None),
+    "path traversal": (lambda z: _with_extra(z, _member("../evil.txt"), b"x"), {}, 400,
+                       "../evil.txt"),
+    "absolute path": (lambda z: _with_extra(z, _member("/etc/evil"), b"x"), {}, 400,
+                      "/etc/evil"),
+    "symlink": (lambda z: _with_extra(z, _member("link", mode=stat.S_IFLNK | 0o777),
+                                      b"/etc/passwd"), {}, 400, "link"),
+    "zip bomb": (lambda z: _bomb(), {}, 413, None),
+    "missing cam2world": (lambda z: edited_zip(z, drop="cam2world/Synthetic.json"), {}, 422,
+                          "cam2world/Synthetic.json"),
+    "bad keypoints": (lambda z: edited_zip(z, replace={keypoint_member(z): b"{not json"}),
+                      {}, 422, "keypoints/"),
+    "too many frames": (lambda z: _with_copies(z, 4), {}, 422, None),
+    "too many recordings": (lambda z: _with_copies(z, 2, recordings=True), {}, 422,
+                            "keypoints/"),
+    "too large": (lambda z: os.urandom(9 << 20), {}, 413, None),
+    "unknown config": (lambda z: z.read_bytes(), {"config": "../../etc/passwd"}, 422, None),
+    "frames not positive": (lambda z: z.read_bytes(), {"frames": "0"}, 422, None),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_UPLOADS))
+def test_bad_uploads_are_rejected_before_queueing(stack, dataset_zip, case):
+    http = client(stack)
+    make, form, status, file = BAD_UPLOADS[case]
+    before = http.get("/v1/jobs").json()["total"]
+    answer = submit(http, make(dataset_zip), **form)
+    assert answer.status_code == status, answer.text
+    body = answer.json()
+    assert body["detail"]
+    if file is not None:
+        assert body["file"].startswith(file), body
+    assert http.get("/v1/jobs").json()["total"] == before
+    stored = stack.storage_dir / "jobs"
+    assert sorted(os.listdir(stored) if stored.exists() else []) == sorted(
+        j["id"] for j in http.get("/v1/jobs", params={"limit": 100}).json()["jobs"])
+
+
+# ---------------------------------------------------------------------------- dying workers
+def _pid(job: dict) -> int:
+    return int(job["worker"].rsplit(":", 1)[1])
+
+
+def test_a_killed_work_horse_is_retried_once_then_failed(stack, dataset_zip):
+    http = client(stack)
+    job = submit(http, dataset_zip, config="prox").json()
+    job = wait(http, job["id"], running)
+    os.kill(_pid(job), signal.SIGKILL)
+    job = wait(http, job["id"], lambda j: j["attempt"] == 2 and running(j), timeout=120)
+    assert job["error"].startswith("attempt 1 failed: its worker process died (signal 9)")
+    os.kill(_pid(job), signal.SIGKILL)
+    job = wait(http, job["id"], ended, timeout=60)
+    assert job["status"] == "failed" and job["attempt"] == 2
+    assert "its worker process died (signal 9)" in job["error"]
+    assert "attempt 2 of 2" in job["error"]
+    assert httpx.get(f"{stack.url}/healthz").json()["workers"] == 1
+
+
+def test_a_job_whose_worker_vanished_is_reaped_and_retried(stack, dataset_zip):
+    http = client(stack)
+    job = submit(http, dataset_zip, config="rgb", frames="1").json()
+    job = wait(http, job["id"], running)
+    horse = _pid(job)
+    stack.workers[0].kill()  # the whole worker: nobody is left to report the loss
+    os.kill(horse, signal.SIGKILL)
+    stack.workers[0].wait()
+    job = wait(http, job["id"], lambda j: j["attempt"] == 2, timeout=60)
+    assert job["status"] == "queued" and "without a heartbeat" in job["error"]
+    stack.add_worker()
+    job = wait(http, job["id"], ended, timeout=300)
+    assert job["status"] == "finished" and job["attempt"] == 2 and job["error"] is None

@@ -1,0 +1,1 @@
+"""RQ workers that run the fitting engine on jobs from Redis."""

@@ -1,0 +1,50 @@
+"""``python -m worker``: an RQ worker on the prox queue (one per CPU core).
+
+Each job runs in a forked work-horse, so a job that crashes or is killed takes only its
+horse down; the worker reports the loss and the job is retried once or failed. The parent
+imports torch but never runs it, which keeps forks cheap and safe (see README, Service).
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+
+from redis import Redis
+from rq import Worker
+
+from service.jobs import JobStore
+from service.settings import Settings
+
+# A worker that stops heart-beating drops out of /healthz after this long.
+WORKER_TTL_S = 60
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m worker", description=__doc__)
+    parser.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    parser.add_argument("--max-jobs", type=int, help="exit after this many jobs (recycling)")
+    parser.add_argument("--name", help="worker name (default: host and pid)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s worker %(message)s")
+    settings = Settings.from_env()
+    store = JobStore(settings)
+
+    def horse_killed(job, retpid: int, ret_val: int, rusage) -> None:
+        job_id, attempt = job.args
+        how = (f"signal {os.WTERMSIG(ret_val)}" if os.WIFSIGNALED(ret_val)
+               else f"exit status {os.waitstatus_to_exitcode(ret_val)}")
+        store.worker_lost(job_id, attempt, f"its worker process died ({how})")
+
+    import torch  # noqa: F401  imported, never run, in the parent: forks start warm
+
+    worker = Worker([settings.queue], name=args.name,
+                    connection=Redis.from_url(settings.redis_url), worker_ttl=WORKER_TTL_S,
+                    work_horse_killed_handler=horse_killed)
+    worker.work(burst=args.burst, max_jobs=args.max_jobs, logging_level="INFO")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

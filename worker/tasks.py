@@ -1,0 +1,144 @@
+"""The work of one job attempt, run by an RQ work-horse: fetch the upload, fit every
+recording with the engine, publish the results, and keep the job record current."""
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from prox_engine.errors import InputError
+from service.jobs import JobOptions, JobStore
+from service.settings import Settings
+from service.storage import LocalStorage, Storage, zip_tree
+from service.upload import UploadError, UploadLimits, extract_upload
+
+HEARTBEAT_S = 5.0
+
+
+class JobAborted(Exception):
+    """The job was cancelled, or this attempt superseded: stop without publishing."""
+
+
+class _Heartbeat(threading.Thread):
+    """Keeps the record's heartbeat fresh while a long step (an SDF, a stage) runs."""
+
+    def __init__(self, store: JobStore, job_id: str, attempt: int) -> None:
+        super().__init__(daemon=True, name=f"heartbeat-{job_id}")
+        self.store, self.job_id, self.attempt = store, job_id, attempt
+        self.stopped = threading.Event()
+        self.current = True
+
+    def run(self) -> None:
+        while not self.stopped.wait(HEARTBEAT_S):
+            self.current = self.store.progress(self.job_id, self.attempt)
+
+
+def run_job(job_id: str, attempt: int) -> str:
+    """RQ entry point; returns the attempt's outcome (the job record has the details)."""
+    settings = Settings.from_env()
+    store = JobStore(settings)
+    if store.start(job_id, attempt, f"{socket.gethostname()}:{os.getpid()}") is None:
+        return "skipped: cancelled or superseded"
+    heartbeat = _Heartbeat(store, job_id, attempt)
+    heartbeat.start()
+    scratch = Path(tempfile.mkdtemp(prefix=f"prox-job-{job_id}-"))
+    try:
+        return _run(store, LocalStorage(settings.storage_dir), settings, job_id, attempt,
+                    scratch, heartbeat)
+    except JobAborted:
+        return "aborted"
+    except (InputError, UploadError) as exc:
+        store.fail(job_id, attempt, str(exc))
+        return "failed"
+    except Exception as exc:  # noqa: BLE001 - the record must say why, then RQ keeps the trace
+        if type(exc).__name__ == "JobTimeoutException":
+            store.fail(job_id, attempt, f"took longer than its time limit ({exc})")
+            return "failed"
+        store.fail(job_id, attempt, f"internal error ({type(exc).__name__}: {exc})")
+        raise
+    finally:
+        heartbeat.stopped.set()
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, attempt: int,
+         scratch: Path, heartbeat: _Heartbeat) -> str:
+    import torch
+
+    from prox_engine.body.anny_body import AnnyBody
+    from prox_engine.config import load_config
+    from prox_engine.pipeline import fit_recording
+
+    record = store.get(job_id)
+    options = JobOptions(**record["options"])
+    started = time.perf_counter()
+    torch.set_num_threads(int(os.environ.get("PROX_THREADS", "1")))
+    torch.manual_seed(0)  # forked work-horses share the parent's random state
+
+    def report(**fields: object) -> None:
+        if not heartbeat.current or not store.progress(job_id, attempt, **fields):
+            raise JobAborted
+
+    report(stage="preparing")
+    upload = scratch / "upload.zip"
+    storage.get_file(f"jobs/{job_id}/upload.zip", upload)
+    limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
+                          settings.max_recordings, settings.max_frames)
+    data = scratch / "data"
+    base = extract_upload(upload, data, limits)
+    upload.unlink()
+    config = load_config(options.config)
+    body = AnnyBody.load()
+    out = scratch / "results"
+    done = failed = 0
+    errors: list[dict] = []
+    seconds: list[float] = []
+    for name in record["recordings"]:
+        def progress(n: int, total: int, frame: str, offset: int = done) -> None:
+            report(frames_done=offset + n, recording=name)
+
+        try:
+            result = fit_recording(base, name, out, config, body, max_frames=options.frames,
+                                   sequence=options.sequence, progress=progress,
+                                   on_stage=lambda stage, rec=name: report(stage=stage,
+                                                                           recording=rec))
+        except InputError as exc:
+            errors.append({"recording": name, "error": _relative(exc, data)})
+            done += record["recordings"][name]
+            continue
+        summary = result.summary
+        done += summary["frames_fitted"] + summary["frames_failed"]
+        failed += summary["frames_failed"]
+        errors += [{"recording": name, "frame": f["frame"], "error": f["error"]}
+                   for f in summary["failures"]]
+        if summary["seconds_per_frame"] is not None:
+            seconds.append(summary["seconds_per_frame"])
+    if sum("frame" not in e for e in errors) == len(record["recordings"]):
+        store.fail(job_id, attempt, "; ".join(e["error"] for e in errors), errors=errors)
+        return "failed"
+
+    report(stage="publishing", frames_done=done, frames_failed=failed)
+    archive = scratch / "results.zip"
+    zip_tree(out, archive)
+    storage.put_tree(f"jobs/{job_id}/results", out)
+    storage.put_file(f"jobs/{job_id}/results.zip", archive)
+    timings = {"run_seconds": round(time.perf_counter() - started, 3),
+               "seconds_per_frame": round(sum(seconds) / len(seconds), 3) if seconds else None}
+    if not store.finish(job_id, attempt, frames_done=done, frames_failed=failed,
+                        errors=errors, timings=timings):
+        if store.get(job_id) is None:  # deleted while publishing: leave nothing behind
+            storage.delete_prefix(f"jobs/{job_id}")
+        raise JobAborted
+    return "finished"
+
+
+def _relative(exc: InputError, data: Path) -> str:
+    """The error with its path as it is in the user's zip."""
+    path = Path(exc.path)
+    return str(InputError(path.relative_to(data) if path.is_relative_to(data) else path,
+                          exc.problem))
+
