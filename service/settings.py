@@ -8,14 +8,16 @@ from pathlib import Path
 from prox_engine.assets import home
 
 
-def _int(name: str, default: int) -> int:
+def _number(name: str, default: int | float) -> int | float:
+    """An environment variable of the default's type; unset or empty gives the default."""
     value = os.environ.get(name)
     if value is None or value == "":
         return default
     try:
-        return int(value)
+        return type(default)(value)
     except ValueError as exc:
-        raise ValueError(f"environment variable {name}={value!r} is not an integer") from exc
+        raise ValueError(f"environment variable {name}={value!r} is not a "
+                         f"{type(default).__name__}") from exc
 
 
 def parse_tokens(spec: str) -> dict[str, str]:
@@ -65,13 +67,13 @@ class Settings:
             storage_dir=Path(os.environ.get("PROX_STORAGE_DIR") or home() / "storage"),
             tokens=parse_tokens(tokens_spec),
             queue=os.environ.get("PROX_QUEUE", cls.queue),
-            max_upload_bytes=_int("PROX_MAX_UPLOAD_MB", cls.max_upload_bytes >> 20) << 20,
-            max_extracted_bytes=_int("PROX_MAX_EXTRACTED_MB",
+            max_upload_bytes=_number("PROX_MAX_UPLOAD_MB", cls.max_upload_bytes >> 20) << 20,
+            max_extracted_bytes=_number("PROX_MAX_EXTRACTED_MB",
                                      cls.max_extracted_bytes >> 20) << 20,
-            max_frames=_int("PROX_MAX_FRAMES", cls.max_frames),
-            max_recordings=_int("PROX_MAX_RECORDINGS", cls.max_recordings),
-            stale_after_s=_int("PROX_JOB_STALE_S", cls.stale_after_s),
-            max_attempts=_int("PROX_JOB_ATTEMPTS", cls.max_attempts),
-            reap_interval_s=float(os.environ.get("PROX_REAP_INTERVAL_S", cls.reap_interval_s)),
-            job_timeout_s=_int("PROX_JOB_TIMEOUT_S", cls.job_timeout_s),
+            max_frames=_number("PROX_MAX_FRAMES", cls.max_frames),
+            max_recordings=_number("PROX_MAX_RECORDINGS", cls.max_recordings),
+            stale_after_s=_number("PROX_JOB_STALE_S", cls.stale_after_s),
+            max_attempts=_number("PROX_JOB_ATTEMPTS", cls.max_attempts),
+            reap_interval_s=_number("PROX_REAP_INTERVAL_S", cls.reap_interval_s),
+            job_timeout_s=_number("PROX_JOB_TIMEOUT_S", cls.job_timeout_s),
         )
