@@ -283,6 +283,21 @@ def test_bad_uploads_are_rejected_before_queueing(stack, dataset_zip, case):
         j["id"] for j in http.get("/v1/jobs", params={"limit": 100}).json()["jobs"])
 
 
+def test_a_streamed_upload_is_cut_off_at_the_limit(stack):
+    """No Content-Length (chunked): the limit applies while the body streams in."""
+    def body():
+        yield (b'--b\r\nContent-Disposition: form-data; name="file"; filename="x.zip"\r\n'
+               b"Content-Type: application/zip\r\n\r\n")
+        for _ in range(12):
+            yield os.urandom(1 << 20)
+        yield b"\r\n--b--\r\n"
+
+    answer = client(stack).post("/v1/jobs", content=body(),
+                                headers={"Content-Type": "multipart/form-data; boundary=b"})
+    assert answer.status_code == 413
+    assert answer.json()["detail"] == "upload larger than the limit of 8 MB"
+
+
 # ---------------------------------------------------------------------------- dying workers
 def _pid(job: dict) -> int:
     return int(job["worker"].rsplit(":", 1)[1])

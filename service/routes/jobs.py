@@ -106,8 +106,11 @@ def results(job_id: str, owner: OwnerDep, store: StoreDep,
             storage: StorageDep) -> StreamingResponse:
     _finished(store, job_id, owner)
     key = f"jobs/{job_id}/results.zip"
+    size = storage.size(key)
+    if size is None:
+        raise ApiError(410, f"the results of job {job_id} are no longer in storage")
     headers = {"Content-Disposition": f'attachment; filename="prox-{job_id}.zip"',
-               "Content-Length": str(storage.size(key))}
+               "Content-Length": str(size)}
     return StreamingResponse(_stream(storage, key), media_type="application/zip",
                              headers=headers)
 
