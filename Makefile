@@ -12,9 +12,11 @@ SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 .PHONY: system setup demo serve test bench loadcheck clean
 
 system:
-	@dpkg -s $(APT_PACKAGES) >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && \
+	@missing=$$(for p in $(APT_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null \
+	  | grep -q '^install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then $(SUDO) apt-get update -qq && \
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends \
-	  $(APT_PACKAGES); }
+	  $$missing; fi
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 def home() -> Path:
     """Root of generated data: ``$PROX_HOME``, default ``~/.cache/prox``."""
-    return Path(os.environ.get("PROX_HOME", Path.home() / ".cache" / "prox"))
+    return Path(os.environ.get("PROX_HOME", Path.home() / ".cache" / "prox")).absolute()
 
 
 def anny_model_path() -> Path:

@@ -64,7 +64,8 @@ class Settings:
             tokens_spec += "\n" + Path(tokens_file).read_text()
         return cls(
             redis_url=os.environ.get("PROX_REDIS_URL", cls.redis_url),
-            storage_dir=Path(os.environ.get("PROX_STORAGE_DIR") or home() / "storage"),
+            storage_dir=Path(os.environ.get("PROX_STORAGE_DIR") or home() / "storage")
+            .absolute(),
             tokens=parse_tokens(tokens_spec),
             queue=os.environ.get("PROX_QUEUE", cls.queue),
             max_upload_bytes=_number("PROX_MAX_UPLOAD_MB", cls.max_upload_bytes >> 20) << 20,

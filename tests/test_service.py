@@ -188,6 +188,20 @@ def test_failed_job_says_why_and_the_worker_survives(stack, dataset_zip):
     assert httpx.get(f"{stack.url}/healthz").json()["workers"] == 1
 
 
+def test_a_frame_without_people_is_skipped_and_reported(stack, dataset_zip):
+    http = client(stack)
+    empty = keypoint_member(dataset_zip, 1)
+    answer = submit(http, edited_zip(dataset_zip, replace={empty: b'{"people": []}'}),
+                    config="rgb")
+    assert answer.status_code == 202, answer.text
+    job = wait(http, answer.json()["id"], ended)
+    assert job["status"] == "finished", job
+    assert job["progress"]["frames_done"] == 2 and job["progress"]["frames_failed"] == 1
+    [skipped] = job["errors"]
+    assert skipped["recording"] == REC
+    assert skipped["error"] == f"{empty}: 'people' is empty: nobody detected in this frame"
+
+
 # ---------------------------------------------------------------------------- auth
 def test_tokens_see_only_their_own_jobs(stack, dataset_zip):
     alice, bob = client(stack, "alice"), client(stack, "bob")

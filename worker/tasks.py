@@ -2,6 +2,7 @@
 recording with the engine, publish the results, and keep the job record current."""
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import socket
@@ -9,6 +10,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+
+from rq.timeouts import JobTimeoutException
 
 from prox_engine.errors import InputError
 from service.jobs import JobOptions, JobStore
@@ -54,10 +57,10 @@ def run_job(job_id: str, attempt: int) -> str:
     except (InputError, UploadError) as exc:
         store.fail(job_id, attempt, str(exc))
         return "failed"
+    except JobTimeoutException as exc:
+        store.fail(job_id, attempt, f"took longer than its time limit ({exc})")
+        return "failed"
     except Exception as exc:  # noqa: BLE001 - the record must say why, then RQ keeps the trace
-        if type(exc).__name__ == "JobTimeoutException":
-            store.fail(job_id, attempt, f"took longer than its time limit ({exc})")
-            return "failed"
         store.fail(job_id, attempt, f"internal error ({type(exc).__name__}: {exc})")
         raise
     finally:
@@ -89,7 +92,7 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
                           settings.max_recordings, settings.max_frames)
     data = scratch / "data"
-    base = extract_upload(upload, data, limits)
+    base = extract_upload(upload, data, limits).relative_to(data)
     upload.unlink()
     config = load_config(options.config)
     body = AnnyBody.load()
@@ -98,16 +101,22 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     errors: list[dict] = []
     seconds: list[float] = []
     for name in record["recordings"]:
-        def progress(n: int, total: int, frame: str, offset: int = done) -> None:
-            report(frames_done=offset + n, recording=name)
+        def progress(n: int, total: int, frame: str, rec: str = name, offset: int = done
+                     ) -> None:
+            report(frames_done=offset + n, recording=rec)
+
+        def on_stage(stage: str, rec: str = name) -> None:
+            report(stage=stage, recording=rec)
 
         try:
-            result = fit_recording(base, name, out, config, body, max_frames=options.frames,
-                                   sequence=options.sequence, progress=progress,
-                                   on_stage=lambda stage, rec=name: report(stage=stage,
-                                                                           recording=rec))
+            # From inside the unpacked upload, so that every path in an error message or
+            # summary reads as it does in the user's zip.
+            with contextlib.chdir(data):
+                result = fit_recording(base, name, out, config, body,
+                                       max_frames=options.frames, sequence=options.sequence,
+                                       progress=progress, on_stage=on_stage)
         except InputError as exc:
-            errors.append({"recording": name, "error": _relative(exc, data)})
+            errors.append({"recording": name, "error": str(exc)})
             done += record["recordings"][name]
             continue
         summary = result.summary
@@ -134,11 +143,4 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
             storage.delete_prefix(f"jobs/{job_id}")
         raise JobAborted
     return "finished"
-
-
-def _relative(exc: InputError, data: Path) -> str:
-    """The error with its path as it is in the user's zip."""
-    path = Path(exc.path)
-    return str(InputError(path.relative_to(data) if path.is_relative_to(data) else path,
-                          exc.problem))
 
