@@ -26,15 +26,31 @@ def penetration_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> 
 
 
 @torch.no_grad()
-def contact_parts(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> list[str]:
-    """Contact parts with a vertex within 2 cm of the scene surface (or inside it)."""
-    touching = []
+def touching_vertices(vertices: torch.Tensor, body: BodyModel, scene: Scene
+                      ) -> dict[str, torch.Tensor]:
+    """Per contact part, its vertices within 2 cm of the scene surface (or inside it)."""
+    touching = {}
     for part, ids in body.contact_parts.items():
         dist, _ = scene.closest_surface(vertices[ids])
         sdf = scene.signed_distance(vertices[ids])
-        if bool(((dist < CONTACT_THRESHOLD) | (sdf < 0)).any()):
-            touching.append(part)
+        touching[part] = ids[(dist < CONTACT_THRESHOLD) | (sdf < 0)]
     return touching
+
+
+def contact_parts(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> list[str]:
+    """Contact parts with a vertex touching the scene (see :func:`touching_vertices`)."""
+    return [p for p, ids in touching_vertices(vertices, body, scene).items() if len(ids)]
+
+
+@torch.no_grad()
+def flagged_vertices(vertices: torch.Tensor, body: BodyModel, scene: Scene
+                     ) -> dict[str, list[int]]:
+    """Vertex ids to colour in renders: penetrating (as counted by
+    :func:`penetration_stats`) and touching (as counted by :func:`contact_parts`)."""
+    ids = torch.nonzero(body.scene_vertices).flatten()
+    inside = scene.signed_distance(vertices[ids]) < -PENETRATION_THRESHOLD
+    touching = torch.cat(list(touching_vertices(vertices, body, scene).values()))
+    return {"penetrating": ids[inside].tolist(), "contact": sorted(set(touching.tolist()))}
 
 
 @torch.no_grad()

@@ -88,6 +88,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
             progress(done, len(names), names[done - 1])
 
     summary = _summarise(recording, config, sequence, frames_summary, failures, scene_seconds)
+    summary["data"] = str(Path(base).absolute())  # where `prox report` finds the scene
     write_json(Path(out) / recording / "summary.json", summary)
     return RecordingResult(recording, summary, failures)
 
@@ -128,6 +129,7 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     write_json(json_path, {
         "frame": frame.name, "config": config.name, "sequence": sequence, **params,
         "losses": result.losses, "stats": stats,
+        "vertices_flagged": metrics.flagged_vertices(result.vertices, body, scene),
         "timings": {"seconds": result.seconds, "stages": result.stage_seconds},
     })
     atomic_write_bytes(ply_path, ply_bytes(result.vertices.numpy(), body.faces.numpy()))
