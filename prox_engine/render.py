@@ -1,0 +1,195 @@
+"""Off-screen renders of fitted bodies in their scene: the recording camera's view, a top and
+a side view (ceiling and walls in front of the body cut away), and the body over the RGB image.
+
+pyrender draws through OSMesa (Mesa's llvmpipe, on the CPU) unless ``PYOPENGL_PLATFORM``
+says otherwise (``egl`` on GPU nodes). OpenGL reads it when first imported, so this module
+sets the default before importing pyrender. Keep one :class:`SceneRenderer` per process and
+never fork after rendering (a forked child's render hangs).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import pyrender  # noqa: E402  (after the platform is chosen)
+import trimesh  # noqa: E402
+
+from .camera import Camera  # noqa: E402
+
+FIT_GREY = (0.78, 0.78, 0.78)
+BASELINE_YELLOW = (0.96, 0.76, 0.12)
+PENETRATING_RED = (0.90, 0.08, 0.08)
+CONTACT_BLUE = (0.10, 0.35, 0.95)
+SCENE_COLOUR = (0.66, 0.62, 0.56)
+VIEWS = ("camera", "top", "side")
+FOV_Y = np.radians(45.0)  # top and side views
+_OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass
+class BodyMesh:
+    """A body to draw: world-frame vertices, its colour, optional vertices to paint."""
+
+    vertices: np.ndarray  # (V, 3), world frame
+    faces: np.ndarray  # (F, 3)
+    colour: tuple[float, float, float] = FIT_GREY
+    penetrating: np.ndarray | None = None  # vertex ids painted red
+    contact: np.ndarray | None = None  # vertex ids painted blue
+
+    def to_pyrender(self) -> pyrender.Mesh:
+        colours = np.tile(np.array([*self.colour, 1.0]), (len(self.vertices), 1))
+        if self.contact is not None:
+            colours[np.asarray(self.contact, dtype=int), :3] = CONTACT_BLUE
+        if self.penetrating is not None:
+            colours[np.asarray(self.penetrating, dtype=int), :3] = PENETRATING_RED
+        mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_colors=colours, process=False)
+        return pyrender.Mesh.from_trimesh(mesh, smooth=True)
+
+
+@dataclass
+class View:
+    """A pinhole camera: intrinsics in output pixels and an OpenCV camera-to-world pose."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    pose: np.ndarray
+
+
+def camera_view(camera: Camera, cam2world: np.ndarray, width: int, height: int) -> View:
+    """The recording camera, scaled to the output size (centred when the aspect differs)."""
+    image_w = camera.width or 2 * camera.cx
+    image_h = camera.height or 2 * camera.cy
+    s = min(width / image_w, height / image_h)
+    return View(camera.fx * s, camera.fy * s, camera.cx * s + (width - image_w * s) / 2,
+                camera.cy * s + (height - image_h * s) / 2, np.asarray(cam2world, dtype=float))
+
+
+def _looking(centre: np.ndarray, forward: np.ndarray, right: np.ndarray, distance: float
+             ) -> np.ndarray:
+    """OpenCV camera-to-world pose looking along ``forward`` at ``centre`` from ``distance``,
+    with ``right`` (perpendicular to ``forward``) as the image's x axis."""
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)
+    pose[:3, 3] = centre - forward * distance
+    return pose
+
+
+def _horizontal(v: np.ndarray) -> np.ndarray:
+    v = np.array([v[0], v[1], 0.0])
+    return v / max(np.linalg.norm(v), 1e-9)
+
+
+def overview_views(bounds: np.ndarray, cam2world: np.ndarray, width: int, height: int,
+                   margin: float = 0.35, side_tilt: float = np.radians(15.0)
+                   ) -> dict[str, View]:
+    """Top and side cameras framing the bodies' world box ``bounds`` (2, 3), oriented like
+    the recording camera: the top view has the camera at the bottom of the image, the side
+    view looks across the camera's line of sight (where depth errors show), tilted down."""
+    forward = _horizontal(cam2world[:3, 2])
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    centre = bounds.mean(0)
+    half = (bounds[1] - bounds[0]) / 2
+    f = height / 2 / np.tan(FOV_Y / 2)
+    # Distance at which a radius fills half the image height, from the box's near face.
+    distance = lambda radius, depth: radius * f / (height / 2) + depth  # noqa: E731
+
+    top_radius = max(half[0], half[1]) + margin
+    top = _looking(centre, np.array([0.0, 0.0, -1.0]), right, distance(top_radius, half[2]))
+    side_forward = -right * np.cos(side_tilt) - np.array([0.0, 0.0, np.sin(side_tilt)])
+    side_radius = max(half[2], abs(half @ forward)) + margin
+    side = _looking(centre, side_forward, forward,
+                    distance(side_radius, np.abs(half[:2]) @ np.abs(right[:2])))
+    return {name: View(f, f, width / 2, height / 2, pose)
+            for name, pose in (("top", top), ("side", side))}
+
+
+def cut_away(vertices: np.ndarray, faces: np.ndarray, view: str, bounds: np.ndarray,
+             pose: np.ndarray) -> np.ndarray:
+    """Faces kept for a top or side view: no ceiling above the bodies, and (side view) nothing
+    between the camera and the bodies."""
+    centroids = vertices[faces].mean(1)
+    keep = centroids[:, 2] < bounds[1, 2] + (0.3 if view == "top" else 0.6)
+    if view == "side":
+        towards = _horizontal(pose[:3, 3] - bounds.mean(0))
+        corners = np.array(np.meshgrid(*bounds.T)).reshape(3, -1).T
+        in_front = centroids @ towards > (corners @ towards).max() + 0.15
+        keep &= ~in_front | (centroids[:, 2] < bounds[0, 2] + 0.05)  # keep the floor
+    return faces[keep]
+
+
+class SceneRenderer:
+    """Renders one recording's scene with bodies in it, from the camera, the top and the side.
+
+    The scene meshes (whole for the camera view, cut for the others) are uploaded once and
+    kept; only the bodies change between frames.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None,
+                 camera: Camera, cam2world: np.ndarray, bounds: np.ndarray,
+                 width: int = 960, height: int = 540) -> None:
+        self.width, self.height = width, height
+        self.views = {"camera": camera_view(camera, cam2world, width, height),
+                      **overview_views(bounds, cam2world, width, height)}
+        self.scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 0.0], ambient_light=[0.3] * 3)
+        self.scene_nodes = {}
+        for name, view in self.views.items():
+            kept = faces if name == "camera" else cut_away(vertices, faces, name, bounds,
+                                                           view.pose)
+            mesh = trimesh.Trimesh(vertices, kept, process=False,
+                                   vertex_colors=colours if colours is not None
+                                   else np.tile([*SCENE_COLOUR, 1.0], (len(vertices), 1)))
+            self.scene_nodes[name] = self.scene.add(pyrender.Mesh.from_trimesh(mesh,
+                                                                               smooth=False))
+        self.camera_node = self.scene.add(pyrender.IntrinsicsCamera(1, 1, 0, 0, znear=0.05,
+                                                                    zfar=100.0))
+        self.light = self.scene.add(pyrender.DirectionalLight(intensity=2.0))
+        self.renderer = pyrender.OffscreenRenderer(width, height)
+
+    def render(self, view: str, bodies: list[BodyMesh]) -> np.ndarray:
+        """An RGB image (H, W, 3) uint8 of the bodies in the scene from ``view``."""
+        return self._draw(view, bodies, with_scene=True)[0]
+
+    def _draw(self, view: str, bodies: list[BodyMesh], with_scene: bool
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Colour (H, W, 3) and depth (H, W; 0 where nothing was drawn)."""
+        v = self.views[view]
+        self.camera_node.camera.fx, self.camera_node.camera.fy = v.fx, v.fy
+        self.camera_node.camera.cx, self.camera_node.camera.cy = v.cx, v.cy
+        gl_pose = v.pose @ _OPENGL_FROM_OPENCV
+        self.scene.set_pose(self.camera_node, gl_pose)
+        self.scene.set_pose(self.light, gl_pose)
+        for name, node in self.scene_nodes.items():
+            node.mesh.is_visible = with_scene and name == view
+        nodes = [self.scene.add(b.to_pyrender()) for b in bodies]
+        try:
+            # OSMesa has no alpha channel: the depth buffer tells what was drawn.
+            colour, depth = self.renderer.render(self.scene)
+        finally:
+            for node in nodes:
+                self.scene.remove_node(node)
+        return colour, depth
+
+    def overlay(self, image: np.ndarray, bodies: list[BodyMesh], alpha: float = 0.8
+                ) -> np.ndarray:
+        """The bodies drawn over the RGB ``image`` as the camera saw them (H, W, 3) uint8."""
+        from PIL import Image
+
+        h, w = image.shape[:2]
+        canvas = np.full((self.height, self.width, 3), 255, dtype=np.uint8)
+        scale = min(self.width / w, self.height / h)
+        resized = np.asarray(Image.fromarray(image[..., :3]).resize(
+            (round(w * scale), round(h * scale)), Image.BILINEAR))
+        top, left = (self.height - resized.shape[0]) // 2, (self.width - resized.shape[1]) // 2
+        canvas[top:top + resized.shape[0], left:left + resized.shape[1]] = resized
+        colour, depth = self._draw("camera", bodies, with_scene=False)
+        a = (depth[..., None] > 0) * alpha
+        return (canvas * (1 - a) + colour * a).astype(np.uint8)
+
+    def close(self) -> None:
+        self.renderer.delete()

@@ -1,0 +1,116 @@
+"""Renders through OSMesa, checked pixel by pixel on known geometry: a closed room (floor,
+walls, ceiling) and a box-shaped "body" standing in it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from prox_engine.camera import Camera
+from prox_engine.render import (BASELINE_YELLOW, PENETRATING_RED, BodyMesh, SceneRenderer,
+                                cut_away)
+from prox_engine.synthetic import look_at
+
+WIDTH, HEIGHT = 480, 270
+BODY_CENTRE = np.array([0.0, 0.0, 0.9])
+
+
+@pytest.fixture(scope="module")
+def room():
+    """A closed 5 x 5 x 2.6 m room (seen from inside) and a 0.5 x 0.3 x 1.8 m body box."""
+    walls = trimesh.creation.box([5.0, 5.0, 2.6])
+    walls.vertices += [0.0, 0.0, 1.3]
+    walls.invert()  # normals inwards, like a scan of a room
+    walls = walls.subdivide_to_size(0.5)
+    body = trimesh.creation.box([0.5, 0.3, 1.8])
+    body.vertices += BODY_CENTRE
+    camera = Camera(500.0, 500.0, 320.0, 240.0, width=640, height=480)
+    cam2world = look_at(np.array([0.0, -2.2, 1.4]), BODY_CENTRE)
+    bounds = np.stack([body.vertices.min(0), body.vertices.max(0)])
+    renderer = SceneRenderer(walls.vertices, walls.faces, None, camera, cam2world, bounds,
+                             WIDTH, HEIGHT)
+    yield renderer, walls, body, camera, cam2world, bounds
+    renderer.close()
+
+
+def _yellow(body: trimesh.Trimesh, **flags) -> BodyMesh:
+    return BodyMesh(np.asarray(body.vertices), np.asarray(body.faces), BASELINE_YELLOW,
+                    **flags)
+
+
+def _is_yellow(pixel: np.ndarray) -> bool:
+    r, g, b = (int(c) for c in pixel[:3])
+    return r > 120 and g > 80 and b < 0.5 * g
+
+
+def _projected_centre(camera: Camera, cam2world: np.ndarray) -> tuple[int, int]:
+    """The body centre's pixel in the output image (the camera view is scaled by 0.5625,
+    and centred horizontally)."""
+    world2cam = np.linalg.inv(cam2world)
+    p = world2cam[:3, :3] @ BODY_CENTRE + world2cam[:3, 3]
+    u, v = camera.fx * p[0] / p[2] + camera.cx, camera.fy * p[1] / p[2] + camera.cy
+    s = min(WIDTH / 640, HEIGHT / 480)
+    return round(u * s + (WIDTH - 640 * s) / 2), round(v * s)
+
+
+def test_camera_view_shows_the_body_where_it_projects(room):
+    renderer, _, body, camera, cam2world, _ = room
+    image = renderer.render("camera", [_yellow(body)])
+    assert image.shape == (HEIGHT, WIDTH, 3) and image.dtype == np.uint8
+    u, v = _projected_centre(camera, cam2world)
+    assert _is_yellow(image[v, u]), image[v, u]
+    # Beside the body: the room, lit and not blank.
+    assert not _is_yellow(image[v, u + 80]) and image[v, u + 80].std() < 30
+    assert 40 < image.mean() < 250 and image.std() > 10
+
+
+def test_top_and_side_views_see_through_the_ceiling_and_walls(room):
+    renderer, walls, body, _, _, bounds = room
+    for view in ("top", "side"):
+        image = renderer.render(view, [_yellow(body)])
+        centre = image[HEIGHT // 2, WIDTH // 2]
+        assert _is_yellow(centre), (view, centre)
+        assert (np.array([_is_yellow(p) for p in image.reshape(-1, 3)[::37]]).mean()
+                < 0.5), view  # the body, not a close-up of it
+    kept = cut_away(walls.vertices, walls.faces, "top", bounds, renderer.views["top"].pose)
+    assert walls.vertices[kept].reshape(-1, 3)[:, 2].max() < 2.6  # no ceiling
+    assert len(kept) < len(walls.faces)
+
+
+def test_side_cut_removes_the_wall_in_front_and_keeps_the_one_behind(room):
+    renderer, walls, _, _, _, bounds = room
+    pose = renderer.views["side"].pose
+    towards = pose[:3, 3] - bounds.mean(0)
+    towards[2] = 0
+    towards /= np.linalg.norm(towards)
+    kept = cut_away(walls.vertices, walls.faces, "side", bounds, pose)
+    centroids = walls.vertices[kept].mean(1)
+    all_centroids = walls.vertices[walls.faces].mean(1)
+    # Wall faces, above the floor and below the ceiling cut (0.6 m above the body).
+    upright = lambda c: (c[:, 2] > 0.1) & (c[:, 2] < bounds[1, 2] + 0.5)  # noqa: E731
+    in_front = lambda c: upright(c) & (c @ towards > 2.0)  # noqa: E731
+    behind = lambda c: upright(c) & (c @ towards < -2.0)  # noqa: E731
+    assert in_front(all_centroids).sum() > 10 and in_front(centroids).sum() == 0
+    assert behind(centroids).sum() == behind(all_centroids).sum() > 10
+    assert (centroids[:, 2] < 0.05).sum() == (all_centroids[:, 2] < 0.05).sum()  # the floor
+
+
+def test_flagged_vertices_are_painted(room):
+    renderer, _, body, camera, cam2world, _ = room
+    everything = np.arange(len(body.vertices))
+    image = renderer.render("camera", [_yellow(body, penetrating=everything)])
+    u, v = _projected_centre(camera, cam2world)
+    r, g, b = (int(c) for c in image[v, u])
+    assert r > 100 and g < 0.5 * r and b < 0.5 * r, (r, g, b)
+    assert PENETRATING_RED[0] > PENETRATING_RED[1]
+
+
+def test_overlay_draws_the_body_over_the_image(room):
+    renderer, _, body, camera, cam2world, _ = room
+    blue = np.zeros((480, 640, 3), dtype=np.uint8)
+    blue[..., 2] = 200
+    image = renderer.overlay(blue, [_yellow(body)])
+    u, v = _projected_centre(camera, cam2world)
+    assert image[v, u, 0] > 100 and image[v, u, 2] < 120  # mostly the body
+    assert tuple(image[v, u + 80]) == (0, 0, 200)  # the photograph, untouched
+    assert tuple(image[5, 5]) == (255, 255, 255)  # the margin of a 4:3 image in 16:9
