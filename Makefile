@@ -5,8 +5,9 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 export PROX_THREADS ?= 1
-# Debian packages: Redis for the job queue (tests start their own server).
-APT_PACKAGES := redis-server
+# Debian packages: Redis for the job queue (tests start their own server), OSMesa for
+# renders on the CPU; Chromium and tidy only for the report tests.
+APT_PACKAGES := redis-server libosmesa6 chromium tidy
 SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 
 .PHONY: system setup demo serve test bench loadcheck clean

@@ -67,6 +67,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
             print(f"skipped {frame}: {error}", file=sys.stderr)
         rows.append(result.summary)
     _print_summary(rows, config.name, args.sequence, Path(args.out))
+    if rows and not args.no_report:
+        from .report import build_report, write_index
+
+        for row in rows:
+            if row["frames_fitted"]:
+                build_report(Path(args.out) / row["recording"], every=args.render_every)
+        print(f"reports: {write_index(args.out, recordings, f'prox fit {args.base}')}")
     return 1 if failed or not rows else 0
 
 
@@ -123,11 +130,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                  .read_text())
             rows[name] = summary
             _print_summary([summary], name, False, out / name)
+    from .report import build_report
+
+    report = build_report(out / "prox" / "Synthetic_00000_01", data=data,
+                          baseline=out / "rgb" / "Synthetic_00000_01")
     print("\n" + json.dumps({k: {"penetrating_share": v["penetration"]["mean_penetrating_share"],
                                  "seconds_per_frame": v["seconds_per_frame"]}
                              for k, v in rows.items()}, indent=1))
     print(f"\nresults downloaded to {out / 'rgb'} and {out / 'prox'} "
           f"(service logs in {out / 'service' / 'logs'})")
+    print(f"report: {report} (comparison: {report.parent / 'compare.html'})")
     return 0
 
 
@@ -144,6 +156,20 @@ def _progress_printer() -> Callable[[dict], None]:
             print(line, flush=True)
 
     return show
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """(Re)build the HTML report of fitted results."""
+    from .report import build_report
+
+    start = time.perf_counter()
+    index = build_report(args.results, data=args.data, baseline=args.compare,
+                         every=args.every, flags=not args.no_flags)
+    timings = json.loads((index.parent / "timings.json").read_text())
+    print(f"report: {index} ({timings['frames_rendered']} frames rendered, "
+          f"{timings['seconds_per_frame']:.2f} s per frame for its views, "
+          f"{time.perf_counter() - start:.1f} s in all)")
+    return 0
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -202,7 +228,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sequence", action="store_true",
                    help="warm-start each frame from the previous fit")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML reports")
+    p.add_argument("--render-every", type=int, default=1, metavar="K",
+                   help="render every k-th frame in the reports")
     p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("report", help="(re)build the HTML report of a fitted recording")
+    p.add_argument("results", type=Path, help="OUT/<rec>: one recording's results")
+    p.add_argument("--data", type=Path, help="the PROX-layout input that was fitted "
+                   "(default: the path in summary.json)")
+    p.add_argument("--compare", type=Path, metavar="OTHER/<rec>",
+                   help="results of another configuration (the baseline, drawn in yellow)")
+    p.add_argument("--every", type=int, default=1, help="render every k-th frame")
+    p.add_argument("--no-flags", action="store_true",
+                   help="do not paint penetrating (red) and contact (blue) vertices")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="synthetic sitting scene, fitted with rgb and prox "
                                     "through a local service")

@@ -1,12 +1,16 @@
 """Shared fixtures: the real anny body (baked by `make setup`) and a small synthetic scene."""
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import trimesh
+from PIL import Image
 
 torch.set_num_threads(1)
 
@@ -25,6 +29,45 @@ def sitting_data(tmp_path_factory, body) -> Path:
 
     return make_sitting_dataset(tmp_path_factory.mktemp("sitting"), frames=2, body=body,
                                 face_size=0.12)
+
+
+REC = "Synthetic_00000_01"
+
+
+def coarse_config(tmp_path: Path, name: str) -> Path:
+    """The named configuration on a coarser SDF grid, to keep the tests quick."""
+    from prox_engine.config import CONFIG_DIR
+
+    path = tmp_path / f"{name}.yaml"
+    path.write_text((CONFIG_DIR / f"{name}.yaml").read_text() + "sdf_dim: 128\n")
+    return path
+
+
+def cli_fit(base: Path, out: Path, config: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "prox_engine.cli", "fit", str(base), "--out",
+                           str(out), "--config", str(config), *extra],
+                          capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="session")
+def cli_fits(sitting_data, tmp_path_factory) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """``prox fit`` (with its reports) of the first sitting frame with rgb and prox, on a copy
+    of the data that has a colour image for that frame."""
+    tmp = tmp_path_factory.mktemp("fits")
+    base = tmp / "data"
+    shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
+    frame = sorted((base / "keypoints" / REC).iterdir())[0].name.removesuffix("_keypoints.json")
+    colour = base / "recordings" / REC / "Color"
+    colour.mkdir(parents=True)
+    gradient = np.zeros((1080, 1920, 3), dtype=np.uint8)
+    gradient[..., 2] = np.linspace(60, 220, 1920, dtype=np.uint8)[None]
+    Image.fromarray(gradient).save(colour / f"{frame}.jpg")
+    runs = {}
+    for name in ("rgb", "prox"):
+        run = cli_fit(base, tmp / name, coarse_config(tmp, name), "--frames", "1")
+        assert run.returncode == 0, run.stderr
+        runs[name] = (tmp / name, run)
+    return runs
 
 
 def plane_mesh(size: float = 4.0, z: float = 0.0) -> trimesh.Trimesh:

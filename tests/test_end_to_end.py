@@ -1,47 +1,18 @@
-"""`prox fit` on the synthetic sitting scene: outputs, bad frames, and prox vs rgb."""
+"""`prox fit` on the synthetic sitting scene: outputs, bad frames, and prox vs rgb (the fits
+are the session fixture ``cli_fits``)."""
 from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
-import pytest
 import trimesh
 
-from prox_engine.config import CONFIG_DIR
-
-REC = "Synthetic_00000_01"
+from .conftest import REC, cli_fit, coarse_config
 
 
-def _config(tmp_path: Path, name: str) -> Path:
-    """The named configuration on a coarser SDF grid, to keep the test quick."""
-    path = tmp_path / f"{name}.yaml"
-    path.write_text((CONFIG_DIR / f"{name}.yaml").read_text() + "sdf_dim: 128\n")
-    return path
-
-
-def _fit(base: Path, out: Path, config: Path, *extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "prox_engine.cli", "fit", str(base), "--out",
-                           str(out), "--config", str(config), *extra],
-                          capture_output=True, text=True, timeout=900)
-
-
-@pytest.fixture(scope="module")
-def fits(sitting_data, tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("fits")
-    runs = {}
-    for name in ("rgb", "prox"):
-        run = _fit(sitting_data, tmp / name, _config(tmp, name), "--frames", "1")
-        assert run.returncode == 0, run.stderr
-        runs[name] = (tmp / name, run)
-    return runs
-
-
-def test_outputs_in_prox_layout(fits, body):
-    out, run = fits["prox"]
+def test_outputs_in_prox_layout(cli_fits, body):
+    out, run = cli_fits["prox"]
     summary = json.loads((out / REC / "summary.json").read_text())
     assert summary["frames_fitted"] == 1 and summary["frames_failed"] == 0
     frame = summary["frames"][0]["frame"]
@@ -55,15 +26,15 @@ def test_outputs_in_prox_layout(fits, body):
     assert "s/frame" in run.stdout and REC in run.stdout
 
 
-def test_rgb_fit_follows_the_keypoints(fits):
-    out, _ = fits["rgb"]
+def test_rgb_fit_follows_the_keypoints(cli_fits):
+    out, _ = cli_fits["rgb"]
     summary = json.loads((out / REC / "summary.json").read_text())
     assert summary["reprojection_error_px"] < 10
 
 
-def test_prox_penetrates_less_than_rgb(fits):
+def test_prox_penetrates_less_than_rgb(cli_fits):
     share = {}
-    for name, (out, _) in fits.items():
+    for name, (out, _) in cli_fits.items():
         summary = json.loads((out / REC / "summary.json").read_text())
         share[name] = summary["penetration"]["mean_penetrating_share"]
     assert share["prox"] < share["rgb"], share
@@ -73,7 +44,8 @@ def test_bad_frame_is_reported_and_skipped(sitting_data, tmp_path):
     base = tmp_path / "data"
     shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
     (base / "keypoints" / REC / "a_broken_keypoints.json").write_text('{"people": []}')
-    run = _fit(base, tmp_path / "out", _config(tmp_path, "rgb"), "--frames", "2")
+    run = cli_fit(base, tmp_path / "out", coarse_config(tmp_path, "rgb"), "--frames", "2",
+                  "--no-report")
     assert run.returncode == 0, run.stderr
     assert "a_broken_keypoints.json" in run.stderr and "'people' is empty" in run.stderr
     summary = json.loads((tmp_path / "out" / REC / "summary.json").read_text())
@@ -83,15 +55,15 @@ def test_bad_frame_is_reported_and_skipped(sitting_data, tmp_path):
 def test_missing_scene_is_a_clear_error(sitting_data, tmp_path):
     base = tmp_path / "data"
     shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth", "scenes"))
-    run = _fit(base, tmp_path / "out", _config(tmp_path, "rgb"), "--frames", "1")
+    run = cli_fit(base, tmp_path / "out", coarse_config(tmp_path, "rgb"), "--frames", "1")
     assert run.returncode == 1
     assert "Synthetic.ply: scene mesh not found" in run.stderr
     assert "Traceback" not in run.stderr
 
 
 def test_sequence_mode_warm_starts(sitting_data, tmp_path):
-    run = _fit(sitting_data, tmp_path / "seq", _config(tmp_path, "prox"), "--sequence",
-               "--frames", "2")
+    run = cli_fit(sitting_data, tmp_path / "seq", coarse_config(tmp_path, "prox"),
+                  "--sequence", "--frames", "2")
     assert run.returncode == 0, run.stderr
     summary = json.loads((tmp_path / "seq" / REC / "summary.json").read_text())
     assert summary["sequence"] is True and summary["frames_fitted"] == 2

@@ -1,0 +1,298 @@
+"""HTML reports of a fitted recording: ``OUT/<rec>/report/index.html`` with the run, plots
+over time, a per-frame table and thumbnails; a page per rendered frame with the camera, top
+and side views (and the body over the RGB image when there is one); ``compare.html`` against
+a baseline run of the same recording. Static files that open from disk; no external assets.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import load_config
+from .dataset import Recording, load_calibration, load_cam2world
+from .errors import InputError
+from .output import atomic_write_text
+from .plots import line_chart
+
+SIZE = (960, 540)
+THUMB = (320, 180)
+VIEW_LABELS = {"overlay": "over the image", "camera": "camera view", "top": "top view",
+               "side": "side view"}
+
+
+def template_dir() -> Path:
+    """``templates/`` of the source tree, or where the package installed it."""
+    for candidate in (Path(__file__).resolve().parents[1] / "templates",
+                      Path(sys.prefix) / "share" / "prox" / "templates"):
+        if candidate.is_dir():
+            return candidate
+    raise FileNotFoundError("report templates not found (templates/ of the prox sources)")
+
+
+@dataclass
+class FittedRecording:
+    """The results of one recording as ``fit_recording`` wrote them (``OUT/<rec>/``)."""
+
+    path: Path
+    summary: dict
+
+    @classmethod
+    def load(cls, path: Path) -> FittedRecording:
+        path = Path(path)
+        summary_path = path / "summary.json"
+        if not summary_path.exists():
+            raise InputError(summary_path, "not found: expected the results of one recording "
+                                           "(OUT/<rec>/ as written by prox fit)")
+        return cls(path, json.loads(summary_path.read_text()))
+
+    @property
+    def frames(self) -> list[dict]:
+        return self.summary["frames"]
+
+    def params(self, frame: str) -> dict:
+        return json.loads((self.path / "results" / frame / "000.json").read_text())
+
+    def vertices(self, frame: str) -> tuple[np.ndarray, np.ndarray]:
+        """The fitted mesh (camera frame): vertices (V, 3) and faces (F, 3)."""
+        import trimesh
+
+        mesh = trimesh.load(self.path / "meshes" / frame / "000.ply", process=False)
+        return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def _world(vertices: np.ndarray, cam2world: np.ndarray) -> np.ndarray:
+    return vertices @ cam2world[:3, :3].T + cam2world[:3, 3]
+
+
+def _colour_image(rec: Recording, frame: str) -> Path | None:
+    for suffix in (".jpg", ".png"):
+        path = rec.recording_dir / "Color" / f"{frame}{suffix}"
+        if path.exists():
+            return path
+    return None
+
+
+def _save(image: np.ndarray, path: Path, thumb: Path | None = None) -> None:
+    from PIL import Image
+
+    picture = Image.fromarray(image[..., :3])
+    picture.save(path, quality=88)
+    if thumb is not None:
+        picture.resize(THUMB, Image.BILINEAR).save(thumb, quality=85)
+
+
+def render_frames(fit: FittedRecording, data: Path, frames: list[str], out: Path,
+                  baseline: FittedRecording | None = None, flags: bool = True,
+                  size: tuple[int, int] = SIZE) -> dict[str, float]:
+    """Write ``out/<frame>_<view>.jpg`` (+ thumbnails, + baseline views); returns timings."""
+    import trimesh
+    from PIL import Image
+
+    from .render import BASELINE_YELLOW, FIT_GREY, BodyMesh, SceneRenderer
+
+    rec = Recording(Path(data), fit.summary["recording"])
+    camera = load_calibration(rec.calibration_path)
+    cam2world = load_cam2world(rec.cam2world_path)
+    scene = trimesh.load(rec.scene_path, force="mesh", process=False)
+    colours = (np.asarray(scene.visual.vertex_colors, dtype=float) / 255
+               if scene.visual.kind == "vertex" else None)
+    runs = [("", fit)] + ([("baseline_", baseline)] if baseline else [])
+    meshes = {(prefix, f): run.vertices(f) for prefix, run in runs for f in frames}
+    world = {key: _world(v, cam2world) for key, (v, _) in meshes.items()}
+    points = np.concatenate(list(world.values()))
+    bounds = np.stack([points.min(0), points.max(0)])
+    flip = _mirrored(fit.summary["config"])
+
+    start = time.perf_counter()
+    renderer = SceneRenderer(scene.vertices, scene.faces, colours, camera, cam2world, bounds,
+                             *size)
+    setup = time.perf_counter() - start
+    try:
+        start = time.perf_counter()
+        for prefix, run in runs:
+            for frame in frames:
+                flagged = run.params(frame).get("vertices_flagged", {}) if flags else {}
+                body = BodyMesh(world[prefix, frame], meshes[prefix, frame][1],
+                                BASELINE_YELLOW if prefix else FIT_GREY,
+                                flagged.get("penetrating"), flagged.get("contact"))
+                thumb = None if prefix else out / f"{frame}_thumb.jpg"
+                image_path = _colour_image(rec, frame)
+                if image_path is not None:
+                    image = Image.open(image_path).convert("RGB")
+                    if flip:
+                        image = image.transpose(Image.FLIP_LEFT_RIGHT)
+                    _save(renderer.overlay(np.asarray(image), [body]),
+                          out / f"{frame}_{prefix}overlay.jpg", thumb)
+                    thumb = None
+                for view in ("camera", "top", "side"):
+                    _save(renderer.render(view, [body]), out / f"{frame}_{prefix}{view}.jpg",
+                          thumb if view == "camera" else None)
+        per_frame = (time.perf_counter() - start) / max(1, len(frames) * len(runs))
+    finally:
+        renderer.close()
+    return {"renderer_setup_seconds": setup, "seconds_per_frame": per_frame}
+
+
+def _mirrored(config_name: str) -> bool:
+    """Whether the configuration mirrors the images (Kinect), as the fit did."""
+    try:
+        return load_config(config_name).flip
+    except InputError:  # a user's configuration file that is gone: assume no mirroring
+        return False
+
+
+def build_report(results: Path, data: Path | None = None, baseline: Path | None = None,
+                 every: int = 1, flags: bool = True, links: dict[str, str] | None = None,
+                 size: tuple[int, int] = SIZE) -> Path:
+    """Render and write the report of ``results`` (``OUT/<rec>``); returns its index page.
+
+    ``data`` is the PROX-layout input (default: the path recorded in summary.json),
+    ``baseline`` the results of another configuration on the same recording, ``every``
+    renders every k-th frame, ``links`` adds download links to the sequence page.
+    """
+    fit = FittedRecording.load(results)
+    base = FittedRecording.load(baseline) if baseline else None
+    data = Path(data or fit.summary["data"])
+    if not (data / "scenes").is_dir():
+        raise InputError(data, "input data not found (the PROX-layout folder that was "
+                               "fitted); give it with --data")
+    frames = fit.frames
+    if base is not None:
+        fitted_there = {f["frame"] for f in base.frames}
+        frames = [f for f in frames if f["frame"] in fitted_there]
+    rendered = frames[::max(1, every)]
+    names = [f["frame"] for f in rendered]
+    report = fit.path / "report"
+    (report / "images").mkdir(parents=True, exist_ok=True)
+    (report / "frames").mkdir(exist_ok=True)
+    timings = render_frames(fit, data, names, report / "images", base, flags, size)
+
+    env = _templates()
+    has_image = {n: (report / "images" / f"{n}_overlay.jpg").exists() for n in names}
+    losses = {f["frame"]: fit.params(f["frame"]).get("losses", {}) for f in fit.frames}
+    terms = sorted({t for v in losses.values() for t in v})
+    rows = [{**f, "losses": losses[f["frame"]], "rendered": f["frame"] in names}
+            for f in fit.frames]
+    common = {"s": fit.summary, "config": fit.summary["config"],
+              "colours": _legend_colours(baseline=False), "every": every}
+    pages = {"index.html": env.get_template("sequence.html").render(
+        **common, frames=rows, rendered=rendered, terms=terms, charts=_charts(fit, base),
+        links=links or {}, compare=base.summary if base else None)}
+    for i, name in enumerate(names):
+        params = fit.params(name)
+        flagged = params.pop("vertices_flagged", {})
+        params["vertices_flagged"] = {k: f"{len(v)} vertices" for k, v in flagged.items()}
+        views = [(v, VIEW_LABELS[v]) for v in ("overlay", "camera", "top", "side")
+                 if v != "overlay" or has_image[name]]
+        pages[f"frames/{name}.html"] = env.get_template("frame.html").render(
+            **common, f={**next(r for r in rows if r["frame"] == name)}, views=views,
+            params=json.dumps(params, indent=1), timings=params.get("timings", {})
+            .get("stages", {}), previous=names[i - 1] if i else None,
+            next=names[i + 1] if i + 1 < len(names) else None)
+    if base is not None:
+        views = [(v, VIEW_LABELS[v]) for v in ("camera", "top", "side")]
+        pages["compare.html"] = env.get_template("compare.html").render(
+            **{**common, "colours": _legend_colours(baseline=True)}, b=base.summary, rows=_comparison(fit.summary, base.summary),
+            charts=_charts(fit, base, both=True), rendered=rendered, views=views)
+    for name, html in pages.items():
+        atomic_write_text(report / name, html)
+    atomic_write_text(report / "timings.json", json.dumps(
+        {"frames_rendered": len(names), **timings}, indent=1))
+    return report / "index.html"
+
+
+def write_index(out: Path, recordings: list[str], title: str) -> Path:
+    """``OUT/index.html``: every recording's numbers, linking to its report."""
+    summaries = []
+    for name in recordings:
+        path = Path(out) / name
+        if (path / "summary.json").exists():
+            summary = FittedRecording.load(path).summary
+            summaries.append({**summary, "has_report": (path / "report" / "index.html")
+                              .exists()})
+    index = Path(out) / "index.html"
+    atomic_write_text(index, _templates().get_template("runs.html").render(
+        title=title, summaries=summaries))
+    return index
+
+
+def _templates():
+    from jinja2 import Environment, FileSystemLoader, select_autoescape
+
+    env = Environment(loader=FileSystemLoader(template_dir()),
+                      autoescape=select_autoescape(["html"]))
+    env.globals.update(fmt=_fmt, pct=lambda v: _fmt(v * 100 if v is not None else None,
+                                                    "%.1f %%"),
+                       cm=lambda v: _fmt(v * 100 if v is not None else None, "%.1f cm"))
+    return env
+
+
+def _fmt(value: float | None, pattern: str) -> str:
+    return "-" if value is None or value != value else pattern % value
+
+
+def _legend_colours(baseline: bool) -> dict[str, str | None]:
+    from .render import (BASELINE_YELLOW, CONTACT_BLUE, FIT_GREY, PENETRATING_RED)
+
+    rgb = lambda c: ", ".join(str(round(255 * x)) for x in c)  # noqa: E731
+    return {"fit": rgb(FIT_GREY), "baseline": rgb(BASELINE_YELLOW) if baseline else None,
+            "penetrating": rgb(PENETRATING_RED), "contact": rgb(CONTACT_BLUE)}
+
+
+def _charts(fit: FittedRecording, base: FittedRecording | None, both: bool = False
+            ) -> list[str]:
+    runs = [fit] + ([base] if both and base else [])
+    x = list(range(len(fit.frames)))
+    label = lambda run: run.summary["config"]  # noqa: E731
+
+    def series(key, scale=1.0):
+        out = {}
+        for run in runs:
+            by_frame = {f["frame"]: f for f in run.frames}
+            out[label(run)] = [by_frame[f["frame"]][key] * scale if f["frame"] in by_frame
+                               and by_frame[f["frame"]][key] is not None else None
+                               for f in fit.frames]
+        return out
+
+    contacts = {label(run): [len({g["frame"]: g for g in run.frames}
+                                 .get(f["frame"], {}).get("contact_parts", []))
+                             for f in fit.frames] for run in runs}
+    return [line_chart("penetrating vertices", x, series("penetrating_share", 100), " %"),
+            line_chart("max penetration depth", x, series("max_depth_m", 100), " cm"),
+            line_chart("contact parts touching", x, contacts),
+            line_chart("data error (reprojection)", x, series("reprojection_error_px"), " px")]
+
+
+def _comparison(fit: dict, base: dict) -> list[dict]:
+    """Rows of the statistics table: baseline, fit, difference (green when better)."""
+    def row(label: str, a: float | None, b: float | None, pattern: str,
+            lower_is_better: bool = True) -> dict:
+        delta = None if a is None or b is None else b - a
+        tone = "" if not delta else ("good" if (delta < 0) == lower_is_better else "bad")
+        return {"label": label, "baseline": _fmt(a, pattern), "fit": _fmt(b, pattern),
+                "delta": "-" if delta is None else ("+" if delta > 0 else "") + pattern % delta,
+                "tone": tone}
+
+    pct = lambda s, *k: None if _get(s, *k) is None else _get(s, *k) * 100  # noqa: E731
+    return [
+        row("penetrating vertices (mean %)", pct(base, "penetration", "mean_penetrating_share"),
+            pct(fit, "penetration", "mean_penetrating_share"), "%.2f"),
+        row("max penetration depth (cm)", pct(base, "penetration", "max_depth_m"),
+            pct(fit, "penetration", "max_depth_m"), "%.1f"),
+        row("frames with contact (%)", pct(base, "contact", "share_of_frames_with_contact"),
+            pct(fit, "contact", "share_of_frames_with_contact"), "%.0f", lower_is_better=False),
+        row("data error (px)", base["reprojection_error_px"], fit["reprojection_error_px"],
+            "%.1f"),
+        row("seconds per frame", base["seconds_per_frame"], fit["seconds_per_frame"], "%.2f"),
+    ]
+
+
+def _get(d: dict, *keys: str) -> float | None:
+    for key in keys:
+        d = d.get(key) if isinstance(d, dict) else None
+    return d

@@ -1,0 +1,107 @@
+"""HTML reports: written by `prox fit`, rebuilt with a comparison by `prox report`, valid
+(HTML Tidy), every link and image resolving, and loading in headless Chromium."""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from prox_engine.errors import InputError
+from prox_engine.report import build_report
+
+from .conftest import REC
+
+
+class _Links(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.links: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.links += [value for name, value in attrs if name in ("href", "src") and value]
+
+
+def _check_page(page: Path) -> list[Path]:
+    """Tidy finds nothing to say; every relative link resolves. Returns the images."""
+    tidy = subprocess.run(["tidy", "-q", "-e", str(page)], capture_output=True, text=True)
+    assert tidy.returncode == 0, f"{page}: {tidy.stderr}"
+    parser = _Links()
+    parser.feed(page.read_text())
+    images = []
+    for link in parser.links:
+        assert not link.startswith(("http:", "https:", "//")), f"{page}: external {link}"
+        target = (page.parent / link.split("#")[0]).resolve()
+        assert target.exists(), f"{page}: {link} does not resolve"
+        if target.suffix == ".jpg":
+            images.append(target)
+    return images
+
+
+def _pages(report: Path) -> list[Path]:
+    return [report / "index.html", *sorted((report / "frames").glob("*.html"))]
+
+
+def test_fit_writes_a_report_whose_links_and_images_resolve(cli_fits):
+    out, run = cli_fits["prox"]
+    report = out / REC / "report"
+    assert "reports:" in run.stdout
+    images = [i for page in [*_pages(report), out / "index.html"] for i in _check_page(page)]
+    views = {i.stem.rsplit("_", 1)[1] for i in images}
+    assert {"thumb", "overlay", "camera", "top", "side"} <= views
+    for path in images:
+        picture = np.asarray(Image.open(path))
+        assert picture.shape in ((540, 960, 3), (180, 320, 3)), path
+        assert picture.std() > 10, f"{path} is blank"
+    index = (report / "index.html").read_text()
+    assert "<svg" in index and "penetrating vertices" in index  # the plots
+    assert "../meshes/" in index and "../results/" in index  # the downloads
+
+
+def test_report_command_adds_the_comparison(cli_fits, tmp_path):
+    prox, _ = cli_fits["prox"]
+    rgb, _ = cli_fits["rgb"]
+    results = tmp_path / REC
+    shutil.copytree(prox / REC, results)
+    run = subprocess.run([sys.executable, "-m", "prox_engine.cli", "report", str(results),
+                          "--compare", str(rgb / REC)], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert re.search(r"1 frames rendered, [\d.]+ s per frame", run.stdout), run.stdout
+    compare = results / "report" / "compare.html"
+    images = _check_page(compare)
+    assert any("_baseline_" in i.name for i in images) and any(
+        "_baseline_" not in i.name for i in images)
+    text = compare.read_text()
+    assert "prox against rgb" in text and "penetrating vertices (mean %)" in text
+    assert 'href="compare.html"' in (results / "report" / "index.html").read_text()
+
+
+def test_report_names_the_missing_input(cli_fits, tmp_path):
+    prox, _ = cli_fits["prox"]
+    with pytest.raises(InputError, match="--data"):
+        build_report(prox / REC, data=tmp_path / "nowhere")
+
+
+def test_report_loads_in_headless_chromium(cli_fits, tmp_path):
+    out, _ = cli_fits["prox"]
+    page = out / REC / "report" / "index.html"
+    browser = ["chromium", "--headless", "--no-sandbox", "--disable-gpu",
+               "--disable-dev-shm-usage", "--hide-scrollbars", "--virtual-time-budget=5000"]
+    dom = subprocess.run([*browser, "--dump-dom", page.as_uri()], capture_output=True,
+                         text=True, timeout=120)
+    loaded = re.search(r'data-images-loaded="(\d+)/(\d+)"', dom.stdout)
+    assert loaded, dom.stderr[-2000:]
+    assert int(loaded[1]) == int(loaded[2]) > 0, loaded[0]
+    screenshot = tmp_path / "report.png"
+    subprocess.run([*browser, "--window-size=1280,1400", f"--screenshot={screenshot}",
+                    page.as_uri()], capture_output=True, timeout=120, check=True)
+    picture = np.asarray(Image.open(screenshot).convert("RGB"))
+    assert picture.shape == (1400, 1280, 3) and picture.std() > 20
+    print(f"report screenshot: {screenshot}")
