@@ -13,7 +13,7 @@ from fastapi.concurrency import run_in_threadpool
 from .errors import install_handlers
 from .jobs import JobStore
 from .limits import BodySizeLimit
-from .routes import health, jobs
+from .routes import health, jobs, reports
 from .settings import Settings
 from .storage import LocalStorage
 
@@ -53,6 +53,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_handlers(app, settings.max_upload_bytes)
     app.add_middleware(BodySizeLimit, limit=settings.max_upload_bytes)
     app.include_router(jobs.router)
+    app.include_router(reports.router)
     app.include_router(health.router)
     return app
 

@@ -2,6 +2,7 @@
 caller's identity from its bearer token."""
 from __future__ import annotations
 
+import hashlib
 import hmac
 from typing import Annotated
 
@@ -13,7 +14,7 @@ from .jobs import JobStore
 from .settings import Settings
 from .storage import Storage
 
-_bearer = HTTPBearer(auto_error=False, description="an API token configured by the operator")
+bearer = HTTPBearer(auto_error=False, description="an API token configured by the operator")
 
 
 def get_settings(request: Request) -> Settings:
@@ -30,7 +31,7 @@ def get_storage(request: Request) -> Storage:
 
 def get_owner(settings: Annotated[Settings, Depends(get_settings)],
               credentials: Annotated[HTTPAuthorizationCredentials | None,
-                                     Depends(_bearer)]) -> str:
+                                     Depends(bearer)]) -> str:
     """The token's owner name; 401 without a valid bearer token."""
     if credentials is None:
         raise ApiError(401, "missing bearer token (send 'Authorization: Bearer <token>')",
@@ -40,6 +41,13 @@ def get_owner(settings: Annotated[Settings, Depends(get_settings)],
         if hmac.compare_digest(presented, token.encode()):
             return owner
     raise ApiError(401, "invalid API token", headers={"WWW-Authenticate": "Bearer"})
+
+
+def report_key(settings: Settings, owner: str, job_id: str) -> str:
+    """A browser-friendly key to one job's report pages, derived from its owner's token (so
+    the token itself never appears in a URL); changes when the token does."""
+    token = min(t for t, o in settings.tokens.items() if o == owner)
+    return hmac.new(token.encode(), f"report:{job_id}".encode(), hashlib.sha256).hexdigest()[:32]
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

@@ -33,11 +33,13 @@ _NUMBER_FIELDS = ("attempt", "runs", "frames_total", "frames_done", "frames_fail
 
 @dataclass(frozen=True)
 class JobOptions:
-    """What the user asked for: the fitting configuration, frames per recording, mode."""
+    """What the user asked for: the configuration, frames per recording, mode, reports."""
 
     config: str = "prox"
     frames: int | None = None
     sequence: bool = False
+    report: bool = True  # HTML reports with renders
+    render_every: int = 1  # render every k-th frame in the reports
 
 
 def _encode(fields: dict) -> dict[str, str]:

@@ -30,6 +30,8 @@ class JobView(BaseModel):
     config: str
     frames: int | None
     sequence: bool
+    report: bool
+    render_every: int
     recordings: dict[str, int]  # recording -> frames to fit
     progress: Progress
     timings: Timings
@@ -60,8 +62,9 @@ def _time(seconds: float | None) -> datetime | None:
     return datetime.fromtimestamp(seconds, timezone.utc) if seconds else None
 
 
-def job_view(record: dict, base: str) -> JobView:
-    """A job record as the API shows it; ``base`` is the API root URL (no trailing /)."""
+def job_view(record: dict, base: str, report_key: str | None = None) -> JobView:
+    """A job record as the API shows it; ``base`` is the API root URL (no trailing /),
+    ``report_key`` opens its report in a browser."""
     options, job_id = record["options"], record["id"]
     started, finished = record["started_at"], record["finished_at"]
     total = record["frames_total"]
@@ -70,9 +73,12 @@ def job_view(record: dict, base: str) -> JobView:
         links["results"] = f"{base}/v1/jobs/{job_id}/results"
         links["frame_mesh"] = f"{base}/v1/jobs/{job_id}/frames/{{frame}}/mesh"
         links["frame_params"] = f"{base}/v1/jobs/{job_id}/frames/{{frame}}/params"
+        if options["report"] and report_key:
+            links["report"] = f"{base}/v1/jobs/{job_id}/report/?key={report_key}"
     return JobView(
         id=job_id, status=record["status"], config=options["config"],
         frames=options["frames"], sequence=options["sequence"],
+        report=options["report"], render_every=options["render_every"],
         recordings=record["recordings"],
         progress=Progress(frames_done=record["frames_done"], frames_total=total,
                           frames_failed=record["frames_failed"],

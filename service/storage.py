@@ -15,7 +15,7 @@ import uuid
 import zipfile
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Iterator
 
 
 class Storage(ABC):
@@ -36,6 +36,12 @@ class Storage(ABC):
     @abstractmethod
     def open(self, key: str) -> BinaryIO:
         """Open ``key`` for reading (raises ``FileNotFoundError``)."""
+
+    def chunks(self, key: str, size: int = 1 << 20) -> Iterator[bytes]:
+        """The content of ``key`` in pieces, for streaming responses."""
+        with self.open(key) as handle:
+            while chunk := handle.read(size):
+                yield chunk
 
     @abstractmethod
     def size(self, key: str) -> int | None:

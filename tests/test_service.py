@@ -20,8 +20,9 @@ import trimesh
 from service.local import LocalStack
 from service.storage import zip_tree
 
+from .conftest import REC
+
 TOKENS = {"alice": "alice-secret-token", "bob": "bob-secret-token-2"}
-REC = "Synthetic_00000_01"
 LIMITS = {"PROX_MAX_UPLOAD_MB": "8", "PROX_MAX_EXTRACTED_MB": "40", "PROX_MAX_FRAMES": "4",
           "PROX_MAX_RECORDINGS": "2", "PROX_JOB_STALE_S": "15", "PROX_REAP_INTERVAL_S": "1"}
 
@@ -110,7 +111,7 @@ def test_full_job_upload_to_download(stack, dataset_zip, body, tmp_path):
     job = wait(http, job["id"], lambda j: seen.add(j["progress"]["stage"]) or ended(j))
     assert job["status"] == "finished", job
     assert seen - {None} <= {"preparing", "scene", "initialise", "global", "body", "detail",
-                             "final", "publishing"} and len(seen - {None}) >= 2
+                             "final", "report", "publishing"} and len(seen - {None}) >= 2
     assert job["progress"]["frames_done"] == job["progress"]["frames_total"] == 1
     assert job["progress"]["fraction"] == 1.0 and job["error"] is None
     timings = job["timings"]
@@ -136,12 +137,36 @@ def test_full_job_upload_to_download(stack, dataset_zip, body, tmp_path):
     assert http.get(f"/v1/jobs/{job['id']}/frames/{frame}/mesh",
                     params={"recording": "Other_1"}).status_code == 404
 
+    assert {"index.html", f"{REC}/report/index.html",
+            f"{REC}/report/images/{frame}_camera.jpg"} <= set(names)
+    check_report_access(stack, job, frame)
+
     listed = http.get("/v1/jobs").json()
     assert listed["jobs"][0]["id"] == job["id"]
 
     assert http.delete(f"/v1/jobs/{job['id']}").status_code == 204
     assert http.get(f"/v1/jobs/{job['id']}").status_code == 404
     assert not (stack.storage_dir / "jobs" / job["id"]).exists()
+
+
+def check_report_access(stack: LocalStack, job: dict, frame: str) -> None:
+    """links.report opens in a cookie-keeping client without a token; others see nothing."""
+    browser = httpx.Client(timeout=60)
+    index = browser.get(job["links"]["report"])
+    assert index.status_code == 200 and index.headers["content-type"].startswith("text/html")
+    assert f"{REC}/report/index.html" in index.text
+    base = f"{stack.url}/v1/jobs/{job['id']}/report"
+    page = browser.get(f"{base}/{REC}/report/index.html")  # the cookie, no key
+    assert page.status_code == 200 and "Per frame" in page.text
+    image = browser.get(f"{base}/{REC}/report/images/{frame}_camera.jpg")
+    assert image.status_code == 200 and image.headers["content-type"] == "image/jpeg"
+    assert image.content[:2] == b"\xff\xd8"
+    assert httpx.get(f"{base}/{REC}/report/index.html").status_code == 401
+    assert httpx.get(f"{base}/", params={"key": "0" * 32}).status_code == 401
+    bob = client(stack, "bob").get(f"{base}/{REC}/report/index.html")
+    assert bob.status_code == 404
+    assert client(stack).get(f"{base}/{REC}/report/index.html").status_code == 200
+    assert browser.get(f"{base}/{REC}/report/../../../upload.zip").status_code == 404
 
 
 def test_list_is_newest_first_and_paginated(stack, dataset_zip):

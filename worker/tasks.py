@@ -3,6 +3,7 @@ recording with the engine, publish the results, and keep the job record current.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import socket
@@ -10,10 +11,12 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 from rq.timeouts import JobTimeoutException
 
 from prox_engine.errors import InputError
+from prox_engine.output import write_json
 from service.jobs import JobOptions, JobStore
 from service.settings import Settings
 from service.storage import LocalStorage, Storage, zip_tree
@@ -68,6 +71,29 @@ def run_job(job_id: str, attempt: int) -> str:
         shutil.rmtree(scratch, ignore_errors=True)
 
 
+def _reports(out: Path, data: Path, recordings: list[str], options: JobOptions, job_id: str,
+             update: Callable[..., None]) -> list[dict]:
+    """HTML reports of the fitted recordings and the job's index page; a recording whose
+    report fails is noted, not fatal."""
+    from prox_engine.report import build_report, write_index
+
+    errors = []
+    for name in recordings:
+        summary_path = out / name / "summary.json"
+        if not summary_path.exists():
+            continue
+        update(stage="report", recording=name)
+        try:
+            build_report(out / name, data=data, every=options.render_every)
+        except Exception as exc:  # noqa: BLE001 - the fit stands without its report
+            errors.append({"recording": name, "error": f"report failed ({exc})"})
+        summary = json.loads(summary_path.read_text())
+        summary["data"] = f"the upload of job {job_id}"  # the scratch copy is gone
+        write_json(summary_path, summary)
+    write_index(out, recordings, f"prox job {job_id}")
+    return errors
+
+
 def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, attempt: int,
          scratch: Path, heartbeat: _Heartbeat) -> str:
     import torch
@@ -82,11 +108,11 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     torch.set_num_threads(int(os.environ.get("PROX_THREADS", "1")))
     torch.manual_seed(0)  # forked work-horses share the parent's random state
 
-    def report(**fields: object) -> None:
+    def update(**fields: object) -> None:
         if not heartbeat.current or not store.progress(job_id, attempt, **fields):
             raise JobAborted
 
-    report(stage="preparing")
+    update(stage="preparing")
     upload = scratch / "upload.zip"
     storage.get_file(f"jobs/{job_id}/upload.zip", upload)
     limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
@@ -103,10 +129,10 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     for name in record["recordings"]:
         def progress(n: int, total: int, frame: str, rec: str = name, offset: int = done
                      ) -> None:
-            report(frames_done=offset + n, recording=rec)
+            update(frames_done=offset + n, recording=rec)
 
         def on_stage(stage: str, rec: str = name) -> None:
-            report(stage=stage, recording=rec)
+            update(stage=stage, recording=rec)
 
         try:
             # From inside the unpacked upload, so that every path in an error message or
@@ -129,8 +155,11 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     if sum("frame" not in e for e in errors) == len(record["recordings"]):
         store.fail(job_id, attempt, "; ".join(e["error"] for e in errors), errors=errors)
         return "failed"
+    if options.report:
+        errors += _reports(out, data / base, list(record["recordings"]), options, job_id,
+                           update)
 
-    report(stage="publishing", frames_done=done, frames_failed=failed)
+    update(stage="publishing", frames_done=done, frames_failed=failed)
     archive = scratch / "results.zip"
     zip_tree(out, archive)
     storage.put_tree(f"jobs/{job_id}/results", out)

@@ -5,17 +5,18 @@ import json
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated, Iterator
+from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 
 from prox_engine.config import CONFIG_DIR, load_config
 
-from ..deps import OwnerDep, SettingsDep, StorageDep, StoreDep
+from ..deps import OwnerDep, SettingsDep, StorageDep, StoreDep, report_key
 from ..errors import ApiError
 from ..jobs import TERMINAL, JobOptions
 from ..schemas import JobPage, JobView, job_view
+from ..settings import Settings
 from ..storage import Storage
 from ..upload import UploadError, UploadLimits, validate_upload
 
@@ -28,18 +29,17 @@ def _base(request: Request) -> str:
     return str(request.base_url).rstrip("/")
 
 
+def _view(record: dict, request: Request, settings: Settings) -> JobView:
+    return job_view(record, _base(request),
+                    report_key(settings, record["owner"], record["id"]))
+
+
 def _own_job(store, job_id: str, owner: str) -> dict:
     """The job if it exists and belongs to the caller (else 404: others' jobs are unseen)."""
     record = store.get(job_id)
     if record is None or record["owner"] != owner:
         raise ApiError(404, f"no job {job_id}")
     return record
-
-
-def _stream(storage: Storage, key: str) -> Iterator[bytes]:
-    with storage.open(key) as handle:
-        while chunk := handle.read(_CHUNK):
-            yield chunk
 
 
 @router.post("", status_code=202, response_model=JobView,
@@ -51,7 +51,10 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
            frames: Annotated[int | None, Form(ge=1, description="fit only the first N "
                                                                 "frames of each recording")] = None,
            sequence: Annotated[bool, Form(description="warm-start each frame from the "
-                                                      "previous one")] = False) -> JobView:
+                                                      "previous one")] = False,
+           report: Annotated[bool, Form(description="HTML reports with renders")] = True,
+           render_every: Annotated[int, Form(ge=1, description="render every k-th frame in "
+                                                               "the reports")] = 1) -> JobView:
     if config not in CONFIGS:
         raise ApiError(422, f"unknown config '{config}' (choose one of {', '.join(CONFIGS)})")
     limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
@@ -67,28 +70,31 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
             raise ApiError(exc.status, str(exc), file=exc.file) from exc
         storage.put_file(f"jobs/{job_id}/upload.zip", Path(upload.name))
         size = Path(upload.name).stat().st_size
-    record = store.create(job_id, owner, JobOptions(config, frames, sequence),
+    record = store.create(job_id, owner,
+                          JobOptions(config, frames, sequence, report, render_every),
                           summary.recordings, size)
-    view = job_view(record, _base(request))
+    view = _view(record, request, settings)
     response.headers["Location"] = view.links["self"]
     return view
 
 
 @router.get("", response_model=JobPage, summary="The caller's jobs, newest first")
-def list_jobs(request: Request, owner: OwnerDep, store: StoreDep,
+def list_jobs(request: Request, owner: OwnerDep, store: StoreDep, settings: SettingsDep,
               offset: Annotated[int, Query(ge=0)] = 0,
               limit: Annotated[int, Query(ge=1, le=100)] = 20) -> JobPage:
     records, total = store.list(owner, offset, limit)
     base = _base(request)
     following = (f"{base}/v1/jobs?offset={offset + limit}&limit={limit}"
                  if offset + limit < total else None)
-    return JobPage(jobs=[job_view(r, base) for r in records], total=total, offset=offset,
+    return JobPage(jobs=[_view(r, request, settings) for r in records], total=total,
+                   offset=offset,
                    limit=limit, next=following)
 
 
 @router.get("/{job_id}", response_model=JobView, summary="Status, progress and timings")
-def get_job(job_id: str, request: Request, owner: OwnerDep, store: StoreDep) -> JobView:
-    return job_view(_own_job(store, job_id, owner), _base(request))
+def get_job(job_id: str, request: Request, owner: OwnerDep, store: StoreDep,
+            settings: SettingsDep) -> JobView:
+    return _view(_own_job(store, job_id, owner), request, settings)
 
 
 def _finished(store, job_id: str, owner: str) -> dict:
@@ -111,7 +117,7 @@ def results(job_id: str, owner: OwnerDep, store: StoreDep,
         raise ApiError(410, f"the results of job {job_id} are no longer in storage")
     headers = {"Content-Disposition": f'attachment; filename="prox-{job_id}.zip"',
                "Content-Length": str(size)}
-    return StreamingResponse(_stream(storage, key), media_type="application/zip",
+    return StreamingResponse(storage.chunks(key), media_type="application/zip",
                              headers=headers)
 
 
@@ -143,7 +149,7 @@ RecordingQuery = Annotated[str | None, Query(description="needed when several re
 def frame_mesh(job_id: str, frame: str, owner: OwnerDep, store: StoreDep, storage: StorageDep,
                recording: RecordingQuery = None) -> StreamingResponse:
     key = _frame_key(store, storage, job_id, owner, frame, recording, "mesh")
-    return StreamingResponse(_stream(storage, key), media_type="application/octet-stream",
+    return StreamingResponse(storage.chunks(key), media_type="application/octet-stream",
                              headers={"Content-Disposition":
                                       f'attachment; filename="{frame}.ply"'})
 
@@ -160,12 +166,12 @@ def frame_params(job_id: str, frame: str, owner: OwnerDep, store: StoreDep,
 @router.delete("/{job_id}", status_code=204, responses={202: {"model": JobView}},
                summary="Cancel a queued or running job; delete a finished one and its files")
 def delete_job(job_id: str, request: Request, owner: OwnerDep, store: StoreDep,
-               storage: StorageDep) -> Response:
+               storage: StorageDep, settings: SettingsDep) -> Response:
     record = _own_job(store, job_id, owner)
     if record["status"] not in TERMINAL:
         cancelled = store.cancel(job_id)
         if cancelled is not None:
-            view = job_view(cancelled, _base(request))
+            view = _view(cancelled, request, settings)
             return Response(view.model_dump_json(), status_code=202,
                             media_type="application/json")
         # It ended meanwhile: delete it like any finished job.
