@@ -29,8 +29,11 @@ def line_chart(title: str, x: list[float], series: dict[str, list[float | None]]
     ticks = _ticks(lo, max(values, default=1.0))
     hi = ticks[-1]
     x0, x1 = (min(x), max(x)) if x else (0, 1)
-    sx = lambda v: left + (v - x0) / ((x1 - x0) or 1) * (width - left - right)  # noqa: E731
-    sy = lambda v: height - bottom - (v - lo) / ((hi - lo) or 1) * (height - top - bottom)  # noqa: E731
+    def sx(v: float) -> float:
+        return left + (v - x0) / ((x1 - x0) or 1) * (width - left - right)
+
+    def sy(v: float) -> float:
+        return height - bottom - (v - lo) / ((hi - lo) or 1) * (height - top - bottom)
     parts = [f'<svg xmlns="http://www.w3.org/2000/svg" class="chart" width="{width}" '
              f'height="{height}" viewBox="0 0 {width} {height}" role="img" '
              f'aria-label="{escape(title)}">',

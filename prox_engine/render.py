@@ -25,7 +25,7 @@ BASELINE_YELLOW = (0.96, 0.76, 0.12)
 PENETRATING_RED = (0.90, 0.08, 0.08)
 CONTACT_BLUE = (0.10, 0.35, 0.95)
 SCENE_COLOUR = (0.66, 0.62, 0.56)
-VIEWS = ("camera", "top", "side")
+VIEWS = ("camera", "top", "side")  # the scene views; "overlay" is the camera's over the image
 FOV_Y = np.radians(45.0)  # top and side views
 _OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 

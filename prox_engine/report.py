@@ -93,7 +93,7 @@ def render_frames(fit: FittedRecording, data: Path, frames: list[str], out: Path
     import trimesh
     from PIL import Image
 
-    from .render import BASELINE_YELLOW, FIT_GREY, BodyMesh, SceneRenderer
+    from .render import BASELINE_YELLOW, FIT_GREY, VIEWS, BodyMesh, SceneRenderer
 
     rec = Recording(Path(data), fit.summary["recording"])
     camera = load_calibration(rec.calibration_path)
@@ -102,10 +102,13 @@ def render_frames(fit: FittedRecording, data: Path, frames: list[str], out: Path
     colours = (np.asarray(scene.visual.vertex_colors, dtype=float) / 255
                if scene.visual.kind == "vertex" else None)
     runs = [("", fit)] + ([("baseline_", baseline)] if baseline else [])
-    meshes = {(prefix, f): run.vertices(f) for prefix, run in runs for f in frames}
-    world = {key: _world(v, cam2world) for key, (v, _) in meshes.items()}
-    points = np.concatenate(list(world.values()))
-    bounds = np.stack([points.min(0), points.max(0)])
+    # The box around every body to render (one mesh in memory at a time: sequences are long).
+    bounds = np.array([[np.inf] * 3, [-np.inf] * 3])
+    for _, run in runs:
+        for frame in frames:
+            points = _world(run.vertices(frame)[0], cam2world)
+            bounds = np.stack([np.minimum(bounds[0], points.min(0)),
+                               np.maximum(bounds[1], points.max(0))])
     flip = _mirrored(fit.summary["config"])
 
     start = time.perf_counter()
@@ -117,7 +120,8 @@ def render_frames(fit: FittedRecording, data: Path, frames: list[str], out: Path
         for prefix, run in runs:
             for frame in frames:
                 flagged = run.params(frame).get("vertices_flagged", {}) if flags else {}
-                body = BodyMesh(world[prefix, frame], meshes[prefix, frame][1],
+                vertices, faces = run.vertices(frame)
+                body = BodyMesh(_world(vertices, cam2world), faces,
                                 BASELINE_YELLOW if prefix else FIT_GREY,
                                 flagged.get("penetrating"), flagged.get("contact"))
                 thumb = None if prefix else out / f"{frame}_thumb.jpg"
@@ -129,7 +133,7 @@ def render_frames(fit: FittedRecording, data: Path, frames: list[str], out: Path
                     _save(renderer.overlay(np.asarray(image), [body]),
                           out / f"{frame}_{prefix}overlay.jpg", thumb)
                     thumb = None
-                for view in ("camera", "top", "side"):
+                for view in VIEWS:
                     _save(renderer.render(view, [body]), out / f"{frame}_{prefix}{view}.jpg",
                           thumb if view == "camera" else None)
         per_frame = (time.perf_counter() - start) / max(1, len(frames) * len(runs))
@@ -176,8 +180,9 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
     has_image = {n: (report / "images" / f"{n}_overlay.jpg").exists() for n in names}
     losses = {f["frame"]: fit.params(f["frame"]).get("losses", {}) for f in fit.frames}
     terms = sorted({t for v in losses.values() for t in v})
-    rows = [{**f, "losses": losses[f["frame"]], "rendered": f["frame"] in names}
+    rows = [{**f, "losses": losses[f["frame"]], "rendered": f["frame"] in has_image}
             for f in fit.frames]
+    row_of = {r["frame"]: r for r in rows}
     common = {"s": fit.summary, "config": fit.summary["config"],
               "colours": _legend_colours(baseline=False), "every": every}
     pages = {"index.html": env.get_template("sequence.html").render(
@@ -190,15 +195,16 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
         views = [(v, VIEW_LABELS[v]) for v in ("overlay", "camera", "top", "side")
                  if v != "overlay" or has_image[name]]
         pages[f"frames/{name}.html"] = env.get_template("frame.html").render(
-            **common, f={**next(r for r in rows if r["frame"] == name)}, views=views,
+            **common, f=row_of[name], views=views,
             params=json.dumps(params, indent=1), timings=params.get("timings", {})
             .get("stages", {}), previous=names[i - 1] if i else None,
             next=names[i + 1] if i + 1 < len(names) else None)
     if base is not None:
-        views = [(v, VIEW_LABELS[v]) for v in ("camera", "top", "side")]
+        views = [(v, VIEW_LABELS[v]) for v in VIEW_LABELS if v != "overlay"]
         pages["compare.html"] = env.get_template("compare.html").render(
-            **{**common, "colours": _legend_colours(baseline=True)}, b=base.summary, rows=_comparison(fit.summary, base.summary),
-            charts=_charts(fit, base, both=True), rendered=rendered, views=views)
+            **{**common, "colours": _legend_colours(baseline=True)}, b=base.summary,
+            rows=_comparison(fit.summary, base.summary), charts=_charts(fit, base, both=True),
+            rendered=rendered, views=views)
     for name, html in pages.items():
         atomic_write_text(report / name, html)
     atomic_write_text(report / "timings.json", json.dumps(
