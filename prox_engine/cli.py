@@ -7,9 +7,13 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
+from .config import BODY_MODELS, GENDERS
 from .errors import InputError
+
+if TYPE_CHECKING:
+    from .config import FitConfig
 
 
 def _threads() -> None:
@@ -32,18 +36,22 @@ def cmd_setup(args: argparse.Namespace) -> int:
 def cmd_fit(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .body.anny_body import AnnyBody
-    from .config import load_config
+    from .body import load_body
     from .dataset import list_recordings
     from .pipeline import fit_recording
 
     _threads()
-    config = load_config(args.config)
+    config = _config_with_body(args)
     recordings = args.recording or list_recordings(args.base)
-    body = AnnyBody.load()
+    genders = _genders(args.genders) if args.genders else {}
+    bodies: dict[str, object] = {}
     failed = False
     rows = []
     for name in recordings:
+        gender = genders.get(name, config.gender)
+        if gender not in bodies:
+            bodies[gender] = load_body(config, gender)
+        body = bodies[gender]
         bar = tqdm(total=None, desc=name, unit="frame", file=sys.stderr,
                    disable=not sys.stderr.isatty() and not args.progress)
 
@@ -75,6 +83,29 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 build_report(Path(args.out) / row["recording"], every=args.render_every)
         print(f"reports: {write_index(args.out, recordings, f'prox fit {args.base}')}")
     return 1 if failed or not rows else 0
+
+
+def _config_with_body(args: argparse.Namespace) -> FitConfig:
+    """The configuration with the body-model options of the command line applied."""
+    import dataclasses
+
+    from .config import load_config
+
+    options = {"model": args.model, "model_path": args.model_path, "gender": args.gender,
+               "hand_pca": args.hand_pca, "body_segments": args.body_segments}
+    return dataclasses.replace(load_config(args.config),
+                               **{k: v for k, v in options.items() if v is not None})
+
+
+def _genders(path: Path) -> dict[str, str]:
+    """A per-recording gender map: a JSON object {"<recording>": "male", ...}."""
+    try:
+        genders = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"cannot read the gender map ({exc})") from exc
+    if not isinstance(genders, dict) or not all(g in GENDERS for g in genders.values()):
+        raise InputError(path, 'expected {"<recording>": "neutral" | "male" | "female", ...}')
+    return genders
 
 
 def _print_summary(rows: list[dict], config: str, sequence: bool, out: Path) -> None:
@@ -228,6 +259,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sequence", action="store_true",
                    help="warm-start each frame from the previous fit")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
+    p.add_argument("--model", choices=BODY_MODELS,
+                   help="body model (default: the configuration's, anny)")
+    p.add_argument("--model-path", help="folder with your licensed SMPLX_{NEUTRAL,MALE,"
+                   "FEMALE}.npz (never downloaded)")
+    p.add_argument("--gender", choices=GENDERS)
+    p.add_argument("--genders", type=Path, metavar="FILE.json",
+                   help='per-recording genders {"<recording>": "female", ...}')
+    p.add_argument("--hand-pca", type=int, metavar="N",
+                   help="SMPL-X hand PCA components (default 12; 0: every finger joint)")
+    p.add_argument("--body-segments", metavar="DIR",
+                   help="PROX's body_segments/ folder: its contact vertices for SMPL-X")
     p.add_argument("--no-report", action="store_true", help="skip the HTML reports")
     p.add_argument("--render-every", type=int, default=1, metavar="K",
                    help="render every k-th frame in the reports")

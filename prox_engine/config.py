@@ -9,6 +9,8 @@ import yaml
 from .errors import InputError
 
 CONFIG_DIR = Path(__file__).parent / "configs"
+BODY_MODELS = ("anny", "smplx")
+GENDERS = ("neutral", "male", "female")
 TERMS = ("body", "hands", "face", "pose_prior", "shape", "bending", "hand_prior",
          "self_penetration", "penetration", "contact", "depth", "temporal")
 
@@ -50,6 +52,12 @@ class FitConfig:
     batch_size: int = 1
     flip: bool = False  # mirror Kinect images and depth (not keypoints) as PROX does
     sdf_dim: int = 256
+    # The body model (prox_engine.body.load_body): anny, or SMPL-X from the user's files.
+    model: str = "anny"
+    model_path: str | None = None  # folder with SMPLX_{NEUTRAL,MALE,FEMALE}.npz
+    gender: str = "neutral"
+    hand_pca: int = 12  # SMPL-X hand PCA components; 0 fits every finger joint
+    body_segments: str | None = None  # PROX's body_segments/ folder (contact vertices)
 
     def uses(self, term: str) -> bool:
         return any(stage.weights.get(term, 0) > 0 for stage in self.stages)

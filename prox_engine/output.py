@@ -1,7 +1,7 @@
 """Writing results in the PROX layout, atomically (temporary file + rename).
 
-``OUT/<rec>/results/<frame>/000.json``, ``OUT/<rec>/meshes/<frame>/000.ply`` (camera frame),
-``OUT/<rec>/summary.json``.
+``OUT/<rec>/results/<frame>/000.json`` (and ``000.pkl`` as PROX writes it, for SMPL-X),
+``OUT/<rec>/meshes/<frame>/000.ply`` (camera frame), ``OUT/<rec>/summary.json``.
 """
 from __future__ import annotations
 
@@ -32,6 +32,13 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def write_json(path: Path, content: object) -> None:
     atomic_write_text(path, json.dumps(content, indent=1))
+
+
+def write_pickle(path: Path, content: object) -> None:
+    """A pickle, as PROX and SMPLify-X write their ``000.pkl`` results."""
+    import pickle
+
+    atomic_write_bytes(path, pickle.dumps(content, protocol=2))
 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:

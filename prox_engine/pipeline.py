@@ -18,7 +18,7 @@ from .depth import load_depth_points
 from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
 from .keypoints import load_keypoints
-from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json
+from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, write_pickle
 from .scene import Scene
 
 Progress = Callable[[int, int, str], None]
@@ -133,6 +133,9 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
         "timings": {"seconds": result.seconds, "stages": result.stage_seconds},
     })
     atomic_write_bytes(ply_path, ply_bytes(result.vertices.numpy(), body.faces.numpy()))
+    prox_result = body.prox_result(result.params, 0)
+    if prox_result is not None:
+        write_pickle(json_path.with_suffix(".pkl"), prox_result)
     return stats
 
 

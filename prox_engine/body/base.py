@@ -72,6 +72,10 @@ class BodyModel(ABC, torch.nn.Module):
     def export(self, params: Params, index: int) -> dict:
         """JSON-ready parameters of one batch element."""
 
+    def prox_result(self, params: Params, index: int) -> dict | None:
+        """The arrays of a PROX/SMPLify-X ``000.pkl`` for models that have one (SMPL-X)."""
+        return None
+
     @abstractmethod
     def shape_group(self) -> list[str]:
         """Names of the parameters that describe body shape (frozen in sequence mode)."""

@@ -1,0 +1,213 @@
+"""The SMPL-X backend on a synthetic model file in the SMPL-X format (tests/smplx_synthetic.py):
+loading and its errors, linear blend skinning against a plain reference, the OpenPose
+mapping, PCA hands, PROX's body segments, and a fit through `prox fit` with a 000.pkl."""
+from __future__ import annotations
+
+import json
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from prox_engine.errors import InputError
+from prox_engine.geometry import axis_angle_to_matrix
+from prox_engine.keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND
+
+from prox_engine.body import smplx_body
+from prox_engine.body.smplx_body import SMPLXBody
+
+from .smplx_synthetic import EXTRA_VERTICES, SMPLX_PARENTS, write_smplx_model
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("smplx")
+    for gender in ("NEUTRAL", "FEMALE"):
+        write_smplx_model(folder, gender, seed=len(gender))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def smplx(model_dir):
+    return SMPLXBody.load(model_dir, "neutral")
+
+
+def _random_params(body, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    params = body.init_params(2)
+    for name, value in params.items():
+        params[name] = torch.randn(value.shape, generator=g) * (0.3 if name != "transl" else 1)
+    return params
+
+
+def _reference_lbs(data: dict, params: dict, index: int, fingers: np.ndarray) -> np.ndarray:
+    """Textbook linear blend skinning in numpy, joint by joint, for one batch element."""
+    betas = torch.cat([params["betas"][index], params["expression"][index]]).numpy()
+    shaped = data["v_template"] + data["shapedirs"][..., :20] @ betas
+    joints = data["J_regressor"] @ shaped
+    pose = np.concatenate([params["global_orient"][index][None].numpy(),
+                           params["body_pose"][index].numpy(),
+                           params["jaw_pose"][index][None].numpy(), np.zeros((2, 3)), fingers])
+    rot = axis_angle_to_matrix(torch.tensor(pose, dtype=torch.float32)).double().numpy()
+    feature = (rot[1:] - np.eye(3)).reshape(-1)
+    posed = shaped + (data["posedirs"] @ feature)
+    world = []
+    for j, parent in enumerate(SMPLX_PARENTS):
+        local = np.eye(4)
+        local[:3, :3] = rot[j]
+        local[:3, 3] = joints[j] - (joints[parent] if parent >= 0 else 0)
+        world.append(local if parent < 0 else world[parent] @ local)
+    out = np.zeros_like(posed)
+    for j, transform in enumerate(world):
+        moved = (posed - joints[j]) @ transform[:3, :3].T + transform[:3, 3]
+        out += data["weights"][:, j:j + 1] * moved
+    return out + params["transl"][index].numpy()
+
+
+def test_skinning_matches_a_plain_reference(smplx, model_dir):
+    data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
+    params = _random_params(smplx)
+    with torch.no_grad():
+        out = smplx(params)
+    for b in range(2):
+        expected = _reference_lbs(data, params, b, smplx.finger_pose(params)[b].numpy())
+        assert np.abs(out.vertices[b].numpy() - expected).max() < 1e-4
+
+
+def test_rest_pose_and_keypoint_mapping(model_dir):
+    data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
+    smplx = SMPLXBody.load(model_dir, "neutral", hand_pca=0)  # PCA hands rest at their mean
+    with torch.no_grad():
+        out = smplx(smplx.init_params(1))
+    vertices, keypoints = out.vertices[0].numpy(), out.keypoints[0].numpy()
+    assert np.allclose(vertices, data["v_template"], atol=1e-5)
+    joints = data["J_regressor"] @ data["v_template"]
+    body = keypoints[BODY]
+    assert np.allclose(body[1], joints[12], atol=1e-5)  # neck
+    assert np.allclose(body[8], joints[0], atol=1e-5)  # mid-hip: the pelvis
+    assert np.allclose(body[2], joints[17], atol=1e-5) and np.allclose(body[5], joints[16],
+                                                                        atol=1e-5)
+    assert np.allclose(body[0], vertices[EXTRA_VERTICES["nose"]])
+    assert np.allclose(body[19], vertices[EXTRA_VERTICES["LBigToe"]])
+    assert np.allclose(body[24], vertices[EXTRA_VERTICES["RHeel"]])
+    left, right = keypoints[LEFT_HAND], keypoints[RIGHT_HAND]
+    assert np.allclose(left[0], joints[20], atol=1e-5) and np.allclose(right[0], joints[21],
+                                                                        atol=1e-5)
+    assert np.allclose(left[4], vertices[EXTRA_VERTICES["lthumb"]])
+    assert np.allclose(right[20], vertices[EXTRA_VERTICES["rpinky"]])
+    faces = data["f"][data["lmk_faces_idx"]]
+    landmarks = np.einsum("lkd,lk->ld", vertices[faces], data["lmk_bary_coords"])
+    assert np.allclose(keypoints[FACE], landmarks, atol=1e-5)
+    assert smplx.keypoint_mask.all()
+    # The regressor the benchmark uses gives the same BODY_25 points at rest.
+    assert np.allclose(smplx.keypoint_weights.numpy() @ vertices, body, atol=1e-5)
+
+
+def test_hands_from_pca_or_every_joint(model_dir, smplx):
+    data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
+    params = smplx.init_params(1)
+    assert params["hand_pose"].shape == (1, 24)
+    rest = smplx.finger_pose(params)[0].reshape(2, 45).numpy()
+    assert np.allclose(rest[0], data["hands_meanl"]) and np.allclose(rest[1], data["hands_meanr"])
+    params["hand_pose"][0, 0] = 1.0  # first left component
+    moved = smplx.finger_pose(params)[0].reshape(2, 45).numpy()
+    assert np.allclose(moved[0] - rest[0], data["hands_componentsl"][0], atol=1e-6)
+    full = SMPLXBody.load(model_dir, "neutral", hand_pca=0)
+    assert full.init_params(1)["hand_pose"].shape == (1, 30, 3)
+
+
+def test_genders_load_their_own_file(model_dir, smplx):
+    female = SMPLXBody.load(model_dir, "female")
+    assert female.gender == "female" and not torch.equal(female.v_template, smplx.v_template)
+
+
+def test_body_segments_become_the_contact_parts(model_dir, tmp_path):
+    folder = tmp_path / "body_segments"
+    folder.mkdir()
+    for i, name in enumerate(smplx_body.SEGMENT_FILES.values()):
+        (folder / f"{name}.json").write_text(json.dumps({"verts_ind": [i, i + 100],
+                                                         "faces_ind": [0]}))
+    body = SMPLXBody.load(model_dir, "neutral", segments=folder)
+    assert body.contact_parts["gluteus"].tolist() == [5, 105]
+    (folder / "back.json").write_text(json.dumps({"verts_ind": [10 ** 6]}))
+    with pytest.raises(InputError, match="back.json: vertex ids outside"):
+        SMPLXBody.load(model_dir, "neutral", segments=folder)
+
+
+def test_derived_contact_parts_are_where_they_belong(smplx):
+    v = smplx.v_template
+    joints = smplx.J_regressor @ v
+    parts = smplx.contact_parts
+    assert {"left_hand", "right_hand", "left_foot", "right_foot", "back", "gluteus",
+            "thighs"} == set(parts) and all(len(ids) > 0 for ids in parts.values())
+    assert (v[parts["left_hand"], 0] > joints[18, 0]).all()  # beyond the left elbow (+x)
+    assert (v[parts["left_foot"], 1] < joints[4, 1]).all()  # below the left knee
+    assert (v[parts["back"], 2] < joints[3, 2]).all()  # behind the spine
+
+
+@pytest.mark.parametrize("problem", ["no folder", "no file", "missing array", "wrong shape",
+                                     "not npz"])
+def test_bad_model_files_are_clear_errors(model_dir, tmp_path, problem):
+    folder = tmp_path / "models"
+    if problem != "no folder":
+        folder.mkdir()
+    path = folder / "SMPLX_NEUTRAL.npz"
+    data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
+    if problem == "missing array":
+        del data["posedirs"]
+    if problem == "wrong shape":
+        data["J_regressor"] = data["J_regressor"][:54]
+    if problem in ("missing array", "wrong shape"):
+        np.savez(path, **data)
+    if problem == "not npz":
+        path.write_bytes(b"not a zip")
+    expected = {"no folder": "model folder not found", "no file": "model file not found",
+                "missing array": "'posedirs' missing", "wrong shape": "'J_regressor' has shape",
+                "not npz": "not a readable .npz"}[problem]
+    with pytest.raises(InputError, match=expected) as error:
+        SMPLXBody.load(folder, "neutral")
+    assert str(folder) in error.value.path
+
+
+def test_prox_fit_with_smplx_writes_prox_pickles(model_dir, smplx, tmp_path):
+    """Keypoints of a posed synthetic SMPL-X body, fitted by `prox fit --model smplx`."""
+    from prox_engine import synthetic
+
+    params = smplx.init_params(1)
+    params["body_pose"][0, 15, 2] = -0.8  # left shoulder down
+    params["body_pose"][0, 16, 2] = 0.8
+    params["global_orient"][0] = torch.tensor([np.pi, 0.0, 0.0])  # y up -> camera y down
+    params["transl"][0] = torch.tensor([0.0, 0.2, 3.0])
+    with torch.no_grad():
+        out = smplx(params)
+    keypoints = out.keypoints[0].numpy()
+    uv = synthetic.project(keypoints)
+    conf = np.ones(len(uv))
+    conf[FACE] = 0
+    data = tmp_path / "data"
+    floor = synthetic.open_box([6.0, 6.0, 0.02], [0.0, 0.0, -0.01], bottom=True)
+    cam2world = synthetic.look_at(np.array([0.0, -3.0, 1.2]), np.array([0.0, 0.0, 1.0]))
+    synthetic.write_scene(data, "Synthetic", floor, cam2world)
+    rec, frame = "Synthetic_00000_01", synthetic.frame_name(0)
+    synthetic.write_frame(data, rec, frame, [synthetic.openpose_person(uv, conf)],
+                          out.vertices[0].numpy(), keypoints[BODY])
+    run = subprocess.run([sys.executable, "-m", "prox_engine.cli", "fit", str(data), "--out",
+                          str(tmp_path / "out"), "--config", "rgb", "--model", "smplx",
+                          "--model-path", str(model_dir)],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((tmp_path / "out" / rec / "summary.json").read_text())
+    assert summary["frames_fitted"] == 1 and summary["reprojection_error_px"] < 25, summary
+    assert (tmp_path / "out" / rec / "report" / "images" / f"{frame}_side.jpg").exists()
+    with (tmp_path / "out" / rec / "results" / frame / "000.pkl").open("rb") as handle:
+        result = pickle.load(handle)
+    assert result["body_pose"].shape == (1, 63) and result["betas"].shape == (1, 10)
+    assert result["left_hand_pose"].shape == (1, 12) and result["expression"].shape == (1, 10)
+    assert result["camera_rotation"].shape == (1, 3, 3)
+    exported = json.loads((tmp_path / "out" / rec / "results" / frame / "000.json").read_text())
+    assert exported["model"] == "smplx" and len(exported["body_pose"]) == 21
+    assert np.allclose(result["body_pose"].reshape(21, 3),
+                       np.array(list(exported["body_pose"].values())), atol=1e-6)
