@@ -9,10 +9,12 @@ can reap at once.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 import uuid
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Callable
 
 from redis import Redis
@@ -20,6 +22,8 @@ from redis.exceptions import WatchError
 from rq import Queue
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job
+
+from prox_engine.config import FitConfig, load_config
 
 from .settings import Settings
 
@@ -40,6 +44,21 @@ class JobOptions:
     sequence: bool = False
     report: bool = True  # HTML reports with renders
     render_every: int = 1  # render every k-th frame in the reports
+    model: str = "anny"  # or "smplx", from the operator's PROX_MODEL_DIR
+    gender: str = "neutral"
+    genders: dict[str, str] | None = None  # per recording
+    hand_pca: int = 12
+
+    def fit_config(self, model_dir: Path | None) -> FitConfig:
+        """The fitting configuration with this job's body model."""
+        segments = model_dir / "body_segments" if model_dir else None
+        return dataclasses.replace(
+            load_config(self.config), model=self.model, gender=self.gender,
+            hand_pca=self.hand_pca, model_path=str(model_dir) if model_dir else None,
+            body_segments=str(segments) if segments and segments.is_dir() else None)
+
+    def gender_of(self, recording: str) -> str:
+        return (self.genders or {}).get(recording, self.gender)
 
 
 def _encode(fields: dict) -> dict[str, str]:

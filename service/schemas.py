@@ -32,6 +32,8 @@ class JobView(BaseModel):
     sequence: bool
     report: bool
     render_every: int
+    model: str
+    gender: str
     recordings: dict[str, int]  # recording -> frames to fit
     progress: Progress
     timings: Timings
@@ -79,6 +81,7 @@ def job_view(record: dict, base: str, report_key: str | None = None) -> JobView:
         id=job_id, status=record["status"], config=options["config"],
         frames=options["frames"], sequence=options["sequence"],
         report=options["report"], render_every=options["render_every"],
+        model=options["model"], gender=options["gender"],
         recordings=record["recordings"],
         progress=Progress(frames_done=record["frames_done"], frames_total=total,
                           frames_failed=record["frames_failed"],

@@ -54,6 +54,7 @@ class Settings:
     max_attempts: int = 2  # a job whose worker died is retried once
     reap_interval_s: float = 5.0
     job_timeout_s: int = 600  # plus seconds_per_frame_limit per frame
+    model_dir: Path | None = None  # licensed SMPLX_*.npz (+ body_segments/), mounted read-only
     seconds_per_frame_limit: int = 120
 
     @classmethod
@@ -77,4 +78,6 @@ class Settings:
             max_attempts=_number("PROX_JOB_ATTEMPTS", cls.max_attempts),
             reap_interval_s=_number("PROX_REAP_INTERVAL_S", cls.reap_interval_s),
             job_timeout_s=_number("PROX_JOB_TIMEOUT_S", cls.job_timeout_s),
+            model_dir=Path(os.environ["PROX_MODEL_DIR"]).absolute()
+            if os.environ.get("PROX_MODEL_DIR") else None,
         )

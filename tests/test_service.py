@@ -6,6 +6,7 @@ The tests share one stack and run in file order; the ones that kill workers come
 from __future__ import annotations
 
 import io
+import json
 import os
 import signal
 import stat
@@ -21,6 +22,7 @@ from service.local import LocalStack
 from service.storage import zip_tree
 
 from .conftest import REC
+from .smplx_synthetic import write_smplx_model
 
 TOKENS = {"alice": "alice-secret-token", "bob": "bob-secret-token-2"}
 LIMITS = {"PROX_MAX_UPLOAD_MB": "8", "PROX_MAX_EXTRACTED_MB": "40", "PROX_MAX_FRAMES": "4",
@@ -31,7 +33,9 @@ LIMITS = {"PROX_MAX_UPLOAD_MB": "8", "PROX_MAX_EXTRACTED_MB": "40", "PROX_MAX_FR
 def stack(tmp_path_factory):
     root = tmp_path_factory.mktemp("service")
     tokens = ",".join(f"{name}:{token}" for name, token in TOKENS.items())
-    with LocalStack(root, tokens, workers=1, env=LIMITS) as running:
+    models = write_smplx_model(root / "models", "NEUTRAL").parent  # no male or female file
+    with LocalStack(root, tokens, workers=1,
+                    env={**LIMITS, "PROX_MODEL_DIR": str(models)}) as running:
         yield running
 
 
@@ -169,6 +173,18 @@ def check_report_access(stack: LocalStack, job: dict, frame: str) -> None:
     assert browser.get(f"{base}/{REC}/report/../../../upload.zip").status_code == 404
 
 
+def test_an_smplx_job_uses_the_operators_model_files(stack, dataset_zip):
+    http = client(stack)
+    answer = submit(http, dataset_zip, config="rgb", frames="1", model="smplx",
+                    genders=json.dumps({REC: "neutral"}), report="false")
+    assert answer.status_code == 202, answer.text
+    job = wait(http, answer.json()["id"], ended)
+    assert job["status"] == "finished" and job["model"] == "smplx", job
+    names = zipfile.ZipFile(io.BytesIO(http.get(job["links"]["results"]).content)).namelist()
+    assert any(n.endswith("/000.pkl") for n in names)
+    assert not any("/report/" in n for n in names) and "report" not in job["links"]
+
+
 def test_list_is_newest_first_and_paginated(stack, dataset_zip):
     http = client(stack)
     ids = [submit(http, dataset_zip, config="rgb", frames="1").json()["id"] for _ in range(2)]
@@ -302,6 +318,12 @@ BAD_UPLOADS = {
     "too large": (lambda z: os.urandom(9 << 20), {}, 413, None),
     "unknown config": (lambda z: z.read_bytes(), {"config": "../../etc/passwd"}, 422, None),
     "frames not positive": (lambda z: z.read_bytes(), {"frames": "0"}, 422, None),
+    "unknown model": (lambda z: z.read_bytes(), {"model": "smpl"}, 422, None),
+    "no such SMPL-X gender": (lambda z: z.read_bytes(), {"model": "smplx", "gender": "male"},
+                              422, None),
+    "genders for other recordings": (lambda z: z.read_bytes(),
+                                     {"model": "smplx", "genders": '{"Other_1": "neutral"}'},
+                                     422, None),
 }
 
 

@@ -10,7 +10,7 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 
-from prox_engine.config import CONFIG_DIR, load_config
+from prox_engine.config import BODY_MODELS, CONFIG_DIR, GENDERS, load_config
 
 from ..deps import OwnerDep, SettingsDep, StorageDep, StoreDep, report_key
 from ..errors import ApiError
@@ -54,7 +54,16 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
                                                       "previous one")] = False,
            report: Annotated[bool, Form(description="HTML reports with renders")] = True,
            render_every: Annotated[int, Form(ge=1, description="render every k-th frame in "
-                                                               "the reports")] = 1) -> JobView:
+                                                               "the reports")] = 1,
+           model: Annotated[str, Form(description="anny (free, default) or smplx (the "
+                                                  "operator's licensed files)")] = "anny",
+           gender: Annotated[str, Form(description="neutral, male or female")] = "neutral",
+           genders: Annotated[str | None, Form(description='per recording, JSON: '
+                                                           '{"<recording>": "female"}')] = None,
+           hand_pca: Annotated[int, Form(ge=0, le=45, description="SMPL-X hand PCA "
+                                                                  "components; 0: every "
+                                                                  "finger joint")] = 12
+           ) -> JobView:
     if config not in CONFIGS:
         raise ApiError(422, f"unknown config '{config}' (choose one of {', '.join(CONFIGS)})")
     limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
@@ -68,14 +77,42 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
                                       needs_depth=load_config(config).uses("depth"))
         except UploadError as exc:
             raise ApiError(exc.status, str(exc), file=exc.file) from exc
+        per_recording = _check_body(settings, model, gender, genders, summary.recordings)
         storage.put_file(f"jobs/{job_id}/upload.zip", Path(upload.name))
         size = Path(upload.name).stat().st_size
-    record = store.create(job_id, owner,
-                          JobOptions(config, frames, sequence, report, render_every),
-                          summary.recordings, size)
+    options = JobOptions(config, frames, sequence, report, render_every, model, gender,
+                         per_recording, hand_pca)
+    record = store.create(job_id, owner, options, summary.recordings, size)
     view = _view(record, request, settings)
     response.headers["Location"] = view.links["self"]
     return view
+
+
+def _check_body(settings: Settings, model: str, gender: str, genders: str | None,
+                recordings: dict[str, list[str]]) -> dict[str, str] | None:
+    """422 unless the body model and genders can be served; the per-recording genders."""
+    if model not in BODY_MODELS:
+        raise ApiError(422, f"unknown model '{model}' (choose {' or '.join(BODY_MODELS)})")
+    per_recording = None
+    if genders:
+        try:
+            per_recording = json.loads(genders)
+        except ValueError as exc:
+            raise ApiError(422, f"'genders' is not JSON ({exc})") from exc
+        if not isinstance(per_recording, dict) or not set(per_recording) <= set(recordings):
+            raise ApiError(422, "'genders' must map recordings of the upload to genders")
+    wanted = {gender, *(per_recording or {}).values()}
+    if not wanted <= set(GENDERS):
+        raise ApiError(422, f"unknown gender in {sorted(wanted)} (choose "
+                            f"{', '.join(GENDERS)})")
+    if model == "smplx":
+        if settings.model_dir is None:
+            raise ApiError(422, "this service has no SMPL-X model files (its operator mounts "
+                                "them and sets PROX_MODEL_DIR); use model=anny")
+        for g in sorted(wanted):
+            if not (settings.model_dir / f"SMPLX_{g.upper()}.npz").is_file():
+                raise ApiError(422, f"this service has no {g} SMPL-X model")
+    return per_recording
 
 
 @router.get("", response_model=JobPage, summary="The caller's jobs, newest first")
