@@ -15,6 +15,7 @@ from typing import Callable
 
 from rq.timeouts import JobTimeoutException
 
+from prox_engine.body.base import BodyModel
 from prox_engine.errors import InputError
 from prox_engine.output import write_json
 from service.jobs import JobOptions, JobStore
@@ -98,8 +99,7 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
          scratch: Path, heartbeat: _Heartbeat) -> str:
     import torch
 
-    from prox_engine.body.anny_body import AnnyBody
-    from prox_engine.config import load_config
+    from prox_engine.body import load_body
     from prox_engine.pipeline import fit_recording
 
     record = store.get(job_id)
@@ -120,8 +120,8 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     data = scratch / "data"
     base = extract_upload(upload, data, limits).relative_to(data)
     upload.unlink()
-    config = load_config(options.config)
-    body = AnnyBody.load()
+    config = options.fit_config(settings.model_dir)
+    bodies: dict[str, BodyModel] = {}
     out = scratch / "results"
     done = failed = 0
     errors: list[dict] = []
@@ -134,6 +134,10 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
         def on_stage(stage: str, rec: str = name) -> None:
             update(stage=stage, recording=rec)
 
+        gender = options.gender_of(name)
+        if gender not in bodies:
+            bodies[gender] = load_body(config, gender)
+        body = bodies[gender]
         try:
             # From inside the unpacked upload, so that every path in an error message or
             # summary reads as it does in the user's zip.
