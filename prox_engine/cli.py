@@ -92,7 +92,8 @@ def _config_with_body(args: argparse.Namespace) -> FitConfig:
     from .config import load_config
 
     options = {"model": args.model, "model_path": args.model_path, "gender": args.gender,
-               "hand_pca": args.hand_pca, "body_segments": args.body_segments}
+               "hand_pca": args.hand_pca, "body_segments": args.body_segments,
+               "vposer_path": args.vposer_path}
     return dataclasses.replace(load_config(args.config),
                                **{k: v for k, v in options.items() if v is not None})
 
@@ -270,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="SMPL-X hand PCA components (default 12; 0: every finger joint)")
     p.add_argument("--body-segments", metavar="DIR",
                    help="PROX's body_segments/ folder: its contact vertices for SMPL-X")
+    p.add_argument("--vposer-path", metavar="PATH",
+                   help="your VPoser v1.0 snapshot (.pt) or its folder: SMPL-X's pose prior")
     p.add_argument("--no-report", action="store_true", help="skip the HTML reports")
     p.add_argument("--render-every", type=int, default=1, metavar="K",
                    help="render every k-th frame in the reports")

@@ -58,6 +58,7 @@ class FitConfig:
     gender: str = "neutral"
     hand_pca: int = 12  # SMPL-X hand PCA components; 0 fits every finger joint
     body_segments: str | None = None  # PROX's body_segments/ folder (contact vertices)
+    vposer_path: str | None = None  # VPoser v1.0 snapshot (or folder): the pose prior
 
     def uses(self, term: str) -> bool:
         return any(stage.weights.get(term, 0) > 0 for stage in self.stages)

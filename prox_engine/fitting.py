@@ -87,7 +87,7 @@ class Fitter:
             if not rescaled and self._scene_stage(stage):
                 self._rescale(params)
                 rescaled = True
-            free = ["transl", "global_orient", "body_pose"]
+            free = ["transl", "global_orient", *self.body.pose_group()]
             if stage.optimize_shape and not frozen_shape:
                 free += self.body.shape_group()
             if stage.optimize_hands and has_hands:

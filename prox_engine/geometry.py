@@ -82,7 +82,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_axis_angle(r: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`axis_angle_to_matrix` (no gradient needed)."""
+    """Inverse of :func:`axis_angle_to_matrix` (roma's, differentiable away from pi)."""
     import roma
 
     return roma.rotmat_to_rotvec(r)

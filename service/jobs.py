@@ -50,12 +50,15 @@ class JobOptions:
     hand_pca: int = 12
 
     def fit_config(self, model_dir: Path | None) -> FitConfig:
-        """The fitting configuration with this job's body model."""
-        segments = model_dir / "body_segments" if model_dir else None
+        """The fitting configuration with this job's body model; PROX's ``body_segments/``
+        and VPoser's ``vposer_v1_0/`` are used when the operator's model folder has them."""
+        extras = {name: model_dir / name if model_dir and (model_dir / name).is_dir() else None
+                  for name in ("body_segments", "vposer_v1_0")}
         return dataclasses.replace(
             load_config(self.config), model=self.model, gender=self.gender,
             hand_pca=self.hand_pca, model_path=str(model_dir) if model_dir else None,
-            body_segments=str(segments) if segments and segments.is_dir() else None)
+            body_segments=str(extras["body_segments"]) if extras["body_segments"] else None,
+            vposer_path=str(extras["vposer_v1_0"]) if extras["vposer_v1_0"] else None)
 
     def gender_of(self, recording: str) -> str:
         return (self.genders or {}).get(recording, self.gender)

@@ -18,6 +18,7 @@ from prox_engine.keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND
 
 from prox_engine.body import smplx_body
 from prox_engine.body.smplx_body import SMPLXBody
+from prox_engine.body.vposer import SNAPSHOT_SHAPES, VPoser
 
 from .smplx_synthetic import EXTRA_VERTICES, SMPLX_PARENTS, write_smplx_model
 
@@ -172,8 +173,11 @@ def test_bad_model_files_are_clear_errors(model_dir, tmp_path, problem):
     assert str(folder) in error.value.path
 
 
-def test_prox_fit_with_smplx_writes_prox_pickles(model_dir, smplx, tmp_path):
-    """Keypoints of a posed synthetic SMPL-X body, fitted by `prox fit --model smplx`."""
+@pytest.mark.parametrize("prior", ["free", "vposer"])
+def test_prox_fit_with_smplx_writes_prox_pickles(model_dir, smplx, vposer_dir, tmp_path,
+                                                 prior):
+    """Keypoints of a posed synthetic SMPL-X body, fitted by `prox fit --model smplx`
+    (with the engine's pose prior or a VPoser snapshot)."""
     from prox_engine import synthetic
 
     params = smplx.init_params(1)
@@ -196,18 +200,85 @@ def test_prox_fit_with_smplx_writes_prox_pickles(model_dir, smplx, tmp_path):
                           out.vertices[0].numpy(), keypoints[BODY])
     run = subprocess.run([sys.executable, "-m", "prox_engine.cli", "fit", str(data), "--out",
                           str(tmp_path / "out"), "--config", "rgb", "--model", "smplx",
-                          "--model-path", str(model_dir)],
+                          "--model-path", str(model_dir),
+                          *(["--vposer-path", str(vposer_dir)] if prior == "vposer" else [])],
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     summary = json.loads((tmp_path / "out" / rec / "summary.json").read_text())
-    assert summary["frames_fitted"] == 1 and summary["reprojection_error_px"] < 25, summary
+    # A random VPoser reaches fewer poses than free joint rotations.
+    limit = 25 if prior == "free" else 80
+    assert summary["frames_fitted"] == 1 and summary["reprojection_error_px"] < limit, summary
     assert (tmp_path / "out" / rec / "report" / "images" / f"{frame}_side.jpg").exists()
     with (tmp_path / "out" / rec / "results" / frame / "000.pkl").open("rb") as handle:
         result = pickle.load(handle)
     assert result["body_pose"].shape == (1, 63) and result["betas"].shape == (1, 10)
     assert result["left_hand_pose"].shape == (1, 12) and result["expression"].shape == (1, 10)
     assert result["camera_rotation"].shape == (1, 3, 3)
+    assert ("pose_embedding" in result) == (prior == "vposer")
     exported = json.loads((tmp_path / "out" / rec / "results" / frame / "000.json").read_text())
     assert exported["model"] == "smplx" and len(exported["body_pose"]) == 21
     assert np.allclose(result["body_pose"].reshape(21, 3),
                        np.array(list(exported["body_pose"].values())), atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def vposer_dir(tmp_path_factory):
+    """A VPoser v1.0-shaped snapshot with random weights (hidden width 64, not 512) whose
+    codes decode to rotations around the rest pose, as a trained prior's do."""
+    folder = tmp_path_factory.mktemp("vposer_v1_0")
+    g = torch.Generator().manual_seed(0)
+    shapes = {name: tuple(64 if s is None else s for s in shape)
+              for name, shape in SNAPSHOT_SHAPES.items()}
+    state = {name: torch.randn(shape, generator=g) * 0.2 for name, shape in shapes.items()}
+    state["bodyprior_dec_out.bias"] = torch.tensor([1.0, 0, 0, 1, 0, 0]).repeat(21)
+    for bn in ("bodyprior_enc_bn1", "bodyprior_enc_bn2"):
+        state[f"{bn}.running_var"] = state[f"{bn}.running_var"].abs() + 0.5
+    (folder / "snapshots").mkdir()
+    torch.save(state, folder / "snapshots" / "TR00_E096.pt")
+    return folder
+
+
+def test_vposer_decodes_rotations_and_encodes_postures(vposer_dir):
+    vposer = VPoser.load(vposer_dir)
+    rotations = vposer.decode(torch.randn(3, 32))
+    assert rotations.shape == (3, 21, 3, 3)
+    eye = torch.eye(3).expand(3, 21, 3, 3)
+    assert torch.allclose(rotations @ rotations.transpose(-1, -2), eye, atol=1e-5)
+    assert torch.allclose(torch.linalg.det(rotations), torch.ones(3, 21), atol=1e-5)
+    assert vposer.encode(torch.zeros(2, 21, 3)).shape == (2, 32)
+
+
+def test_smplx_with_vposer_fits_a_code(model_dir, vposer_dir):
+    body = SMPLXBody.load(model_dir, "neutral", vposer=vposer_dir)
+    plain = SMPLXBody.load(model_dir, "neutral")
+    assert body.pose_group() == ["pose_embedding"] and plain.pose_group() == ["body_pose"]
+    params = body.init_params(1, "sitting")
+    assert "body_pose" not in params and params["pose_embedding"].abs().sum() > 0
+    params["pose_embedding"] = torch.randn(1, 32)
+    assert torch.isclose(body.pose_prior(params), (params["pose_embedding"] ** 2).sum())
+    decoded = body.body_pose(params)
+    with torch.no_grad():
+        ours = body(params).vertices
+        theirs = plain({**{k: v for k, v in params.items() if k != "pose_embedding"},
+                        "body_pose": decoded}).vertices
+    assert torch.allclose(ours, theirs, atol=1e-5)
+    result = body.prox_result(params, 0)
+    assert result["pose_embedding"].shape == (1, 32)
+    assert np.allclose(result["body_pose"], decoded.reshape(1, 63).numpy())
+
+
+@pytest.mark.parametrize("problem", ["missing weight", "not torch", "no snapshot"])
+def test_bad_vposer_snapshots_are_clear_errors(vposer_dir, tmp_path, problem):
+    folder = tmp_path / "vposer"
+    (folder / "snapshots").mkdir(parents=True)
+    state = torch.load(next((vposer_dir / "snapshots").glob("*.pt")), weights_only=True)
+    if problem == "missing weight":
+        del state["bodyprior_dec_out.weight"]
+        torch.save(state, folder / "snapshots" / "a.pt")
+    if problem == "not torch":
+        (folder / "snapshots" / "a.pt").write_text("hello")
+    expected = {"missing weight": "'bodyprior_dec_out.weight' missing",
+                "not torch": "not a readable PyTorch state dict",
+                "no snapshot": "no VPoser snapshot"}[problem]
+    with pytest.raises(InputError, match=expected):
+        VPoser.load(folder)

@@ -72,6 +72,11 @@ class BodyModel(ABC, torch.nn.Module):
     def export(self, params: Params, index: int) -> dict:
         """JSON-ready parameters of one batch element."""
 
+    def pose_group(self) -> list[str]:
+        """Names of the parameters that describe the body pose (a learned prior may put
+        a latent code here instead of joint rotations)."""
+        return ["body_pose"]
+
     def prox_result(self, params: Params, index: int) -> dict | None:
         """The arrays of a PROX/SMPLify-X ``000.pkl`` for models that have one (SMPL-X)."""
         return None

@@ -11,6 +11,7 @@ as in SMPL-X: x to the body's left, y up, z forward):
 - ``hand_pose``: (B, 2 * P) PCA coefficients of the left then the right hand (P = 12 as in
   the paper), or (B, 30, 3) finger rotations when ``hand_pca`` is 0;
 - ``betas`` (B, 10), ``expression`` (B, 10), ``jaw_pose`` (B, 3); the eyes stay at rest.
+With VPoser (the user's snapshot), ``pose_embedding`` (B, 32) replaces ``body_pose``.
 """
 from __future__ import annotations
 
@@ -23,9 +24,10 @@ import torch
 
 from ..config import GENDERS
 from ..errors import InputError
-from ..geometry import axis_angle_to_matrix
+from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from ..keypoints import BODY, FACE, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 from .base import BodyModel, BodyOutput, Params
+from .vposer import LATENT, VPoser
 
 JOINTS = [
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
@@ -142,7 +144,8 @@ class SMPLXBody(BodyModel):
 
     def __init__(self, data: dict[str, np.ndarray], path: Path, gender: str = "neutral",
                  hand_pca: int = 12, segments: dict[str, np.ndarray] | None = None,
-                 num_betas: int = 10, num_expression: int = 10) -> None:
+                 vposer: VPoser | None = None, num_betas: int = 10,
+                 num_expression: int = 10) -> None:
         super().__init__()
         count, columns = _shapes(data, path)
         if not 0 <= hand_pca <= 45:
@@ -156,6 +159,7 @@ class SMPLXBody(BodyModel):
                                    f"{num_betas} betas and {num_expression} expressions")
         f32 = lambda a: torch.tensor(np.asarray(a, dtype=np.float32))  # noqa: E731
         self.gender, self.hand_pca, self.source = gender, hand_pca, str(path)
+        self.vposer = vposer
         self.register_buffer("v_template", f32(data["v_template"]))
         dirs = data["shapedirs"]
         self.register_buffer("shapedirs", f32(np.concatenate(
@@ -186,11 +190,14 @@ class SMPLXBody(BodyModel):
 
     @classmethod
     def load(cls, folder: Path | str, gender: str = "neutral", hand_pca: int = 12,
-             segments: Path | str | None = None) -> SMPLXBody:
-        """Load ``FOLDER/SMPLX_<GENDER>.npz``; ``segments`` is PROX's body_segments folder."""
+             segments: Path | str | None = None, vposer: Path | str | None = None
+             ) -> SMPLXBody:
+        """Load ``FOLDER/SMPLX_<GENDER>.npz``; ``segments`` is PROX's body_segments folder,
+        ``vposer`` a VPoser v1.0 snapshot (or its folder)."""
         path = model_file(folder, gender)
         return cls(load_model_data(path), path, gender, hand_pca,
-                   load_segments(Path(segments)) if segments else None)
+                   load_segments(Path(segments)) if segments else None,
+                   VPoser.load(vposer) if vposer else None)
 
     # ----------------------------------------------------------------- static geometry
     def _setup_static_geometry(self, segments: dict[str, np.ndarray] | None) -> None:
@@ -310,10 +317,24 @@ class SMPLXBody(BodyModel):
         }
         for joint, value in _POSTURES[posture].items():
             params["body_pose"][:, BODY_JOINTS.index(joint)] = torch.tensor(value)
+        if self.vposer is not None:  # the standing start is the prior's mean, as SMPLify-X
+            pose = params.pop("body_pose")
+            with torch.no_grad():
+                params["pose_embedding"] = (self.vposer.encode(pose) if posture != "standing"
+                                            else zeros(LATENT))
         return params
 
     def shape_group(self) -> list[str]:
         return ["betas"]
+
+    def pose_group(self) -> list[str]:
+        return ["pose_embedding"] if self.vposer is not None else ["body_pose"]
+
+    def body_pose(self, params: Params) -> torch.Tensor:
+        """(B, 21, 3) axis-angle of the body joints (decoded when VPoser is used)."""
+        if self.vposer is None:
+            return params["body_pose"]
+        return matrix_to_axis_angle(self.vposer.decode(params["pose_embedding"]))
 
     def up_axis(self) -> torch.Tensor:
         return torch.tensor([0.0, 1.0, 0.0])
@@ -337,7 +358,7 @@ class SMPLXBody(BodyModel):
         shaped = self.v_template + torch.einsum("bl,vdl->bvd", coeffs, self.shapedirs)
         joints = torch.einsum("jv,bvd->bjd", self.J_regressor, shaped)
         eyes = params["jaw_pose"].new_zeros(batch, 2, 3)
-        pose = torch.cat([params["global_orient"][:, None], params["body_pose"],
+        pose = torch.cat([params["global_orient"][:, None], self.body_pose(params),
                           params["jaw_pose"][:, None], eyes, self.finger_pose(params)], 1)
         rotations = axis_angle_to_matrix(pose)  # (B, 55, 3, 3)
         eye = torch.eye(3, dtype=rotations.dtype)
@@ -379,15 +400,17 @@ class SMPLXBody(BodyModel):
 
     # ----------------------------------------------------------------- priors
     def pose_prior(self, params: Params) -> torch.Tensor:
+        if self.vposer is not None:
+            return (params["pose_embedding"] ** 2).sum(1)
         return (params["body_pose"] ** 2).sum((1, 2))
 
     def joint_limits(self, params: Params) -> torch.Tensor:
-        pose = params["body_pose"]
+        pose = self.body_pose(params)
         outside = torch.relu(pose - self.limit_hi) + torch.relu(self.limit_lo - pose)
         return (outside ** 2).sum((1, 2))
 
     def bending_prior(self, params: Params) -> torch.Tensor:
-        pose = params["body_pose"]
+        pose = self.body_pose(params)
         j = BODY_JOINTS.index
         flexion = torch.stack([-pose[:, j("left_elbow"), 1], pose[:, j("right_elbow"), 1],
                                pose[:, j("left_knee"), 0], pose[:, j("right_knee"), 0]], 1)
@@ -405,10 +428,12 @@ class SMPLXBody(BodyModel):
     def export(self, params: Params, index: int) -> dict:
         value = lambda name: params[name][index].detach().tolist()  # noqa: E731
         fingers = self.finger_pose({"hand_pose": params["hand_pose"][index:index + 1]})[0]
+        body_pose = self.body_pose(params)[index].detach().tolist()
         return {
             "model": "smplx", "gender": self.gender, "model_file": self.source,
             "global_orient": value("global_orient"), "transl": value("transl"),
-            "body_pose": dict(zip(BODY_JOINTS, value("body_pose"))),
+            "body_pose": dict(zip(BODY_JOINTS, body_pose)),
+            "pose_embedding": value("pose_embedding") if self.vposer is not None else None,
             "left_hand_pose": fingers[:15].tolist(), "right_hand_pose": fingers[15:].tolist(),
             "hand_pca": value("hand_pose") if self.hand_pca else None,
             "betas": value("betas"), "expression": value("expression"),
@@ -422,6 +447,8 @@ class SMPLXBody(BodyModel):
         def row(name: str) -> np.ndarray:
             return params[name][index:index + 1].detach().numpy().reshape(1, -1)
 
+        body_pose = self.body_pose(params)[index:index + 1].detach().numpy().reshape(1, -1)
+
         hands = row("hand_pose")
         half = hands.shape[1] // 2
         return {
@@ -432,6 +459,7 @@ class SMPLXBody(BodyModel):
             "left_hand_pose": hands[:, :half], "right_hand_pose": hands[:, half:],
             "jaw_pose": row("jaw_pose"), "leye_pose": np.zeros((1, 3), dtype=np.float32),
             "reye_pose": np.zeros((1, 3), dtype=np.float32), "expression": row("expression"),
-            "body_pose": row("body_pose"),
+            "body_pose": body_pose,
+            **({"pose_embedding": row("pose_embedding")} if self.vposer is not None else {}),
         }
 
