@@ -125,6 +125,14 @@ def test_genders_load_their_own_file(model_dir, smplx):
     assert female.gender == "female" and not torch.equal(female.v_template, smplx.v_template)
 
 
+def test_pickled_extras_in_the_file_are_skipped_not_unpickled(model_dir, tmp_path):
+    """The distributed files also hold pickled dicts (joint2num, part2num)."""
+    data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
+    data["joint2num"] = np.array({"pelvis": 0}, dtype=object)
+    np.savez(tmp_path / "SMPLX_NEUTRAL.npz", **data)
+    assert SMPLXBody.load(tmp_path, "neutral").v_template.shape == (10475, 3)
+
+
 def test_body_segments_become_the_contact_parts(model_dir, tmp_path):
     folder = tmp_path / "body_segments"
     folder.mkdir()

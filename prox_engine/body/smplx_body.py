@@ -74,16 +74,19 @@ _LIMITS = {
 }
 
 
+# The arrays the loader uses and their shapes (None: any size).
+ARRAYS = {
+    "v_template": (None, 3), "f": (None, 3), "shapedirs": (None, 3, None),
+    "posedirs": (None, 3, 486), "J_regressor": (55, None), "weights": (None, 55),
+    "kintree_table": (2, 55), "hands_componentsl": (45, 45), "hands_componentsr": (45, 45),
+    "hands_meanl": (45,), "hands_meanr": (45,), "lmk_faces_idx": (51,),
+    "lmk_bary_coords": (51, 3),
+}
+
+
 def _shapes(data: dict[str, np.ndarray], path: Path) -> tuple[int, int]:
     """Check the arrays the loader uses; returns (vertices, shape columns)."""
-    expected = {
-        "v_template": (None, 3), "f": (None, 3), "shapedirs": (None, 3, None),
-        "posedirs": (None, 3, 486), "J_regressor": (55, None), "weights": (None, 55),
-        "kintree_table": (2, 55), "hands_componentsl": (45, 45), "hands_componentsr": (45, 45),
-        "hands_meanl": (45,), "hands_meanr": (45,), "lmk_faces_idx": (51,),
-        "lmk_bary_coords": (51, 3),
-    }
-    for key, shape in expected.items():
+    for key, shape in ARRAYS.items():
         if key not in data:
             raise InputError(path, f"'{key}' missing: not an SMPL-X model file")
         got = data[key].shape
@@ -97,6 +100,9 @@ def _shapes(data: dict[str, np.ndarray], path: Path) -> tuple[int, int]:
                                    f"template has {count}")
     if count <= max(EXTRA_VERTICES.values()) or data["f"].max() >= count:
         raise InputError(path, f"{count} vertices: too few for SMPL-X")
+    parents = data["kintree_table"][0].astype(np.int64)[1:]
+    if not (parents < np.arange(1, 55)).all():
+        raise InputError(path, "'kintree_table' does not list parents before children")
     return count, data["shapedirs"].shape[2]
 
 
@@ -115,9 +121,11 @@ def model_file(folder: Path | str, gender: str = "neutral") -> Path:
 
 
 def load_model_data(path: Path) -> dict[str, np.ndarray]:
+    """The arrays the loader uses (never unpickling: the files also hold pickled dicts,
+    which are skipped)."""
     try:
         with np.load(path, allow_pickle=False) as npz:
-            return {key: npz[key] for key in npz.files}
+            return {key: npz[key] for key in ARRAYS if key in npz.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(path, f"not a readable .npz model file ({exc})") from exc
 
