@@ -12,7 +12,6 @@ Parameters (all leaf tensors, batch first):
 from __future__ import annotations
 
 import math
-from functools import cached_property
 
 import numpy as np
 import torch
