@@ -4,8 +4,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from prox_engine.assets import home
+
+if TYPE_CHECKING:
+    from .upload import UploadLimits
 
 
 def _number(name: str, default: int | float) -> int | float:
@@ -56,6 +60,12 @@ class Settings:
     job_timeout_s: int = 600  # plus seconds_per_frame_limit per frame
     model_dir: Path | None = None  # licensed SMPLX_*.npz (+ body_segments/), mounted read-only
     seconds_per_frame_limit: int = 120
+
+    def upload_limits(self) -> UploadLimits:
+        from .upload import UploadLimits
+
+        return UploadLimits(self.max_extracted_bytes, self.max_entries, self.max_recordings,
+                            self.max_frames)
 
     @classmethod
     def from_env(cls) -> Settings:

@@ -21,7 +21,7 @@ from prox_engine.output import write_json
 from service.jobs import JobOptions, JobStore
 from service.settings import Settings
 from service.storage import LocalStorage, Storage, zip_tree
-from service.upload import UploadError, UploadLimits, extract_upload
+from service.upload import UploadError, extract_upload
 
 HEARTBEAT_S = 5.0
 
@@ -115,10 +115,8 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     update(stage="preparing")
     upload = scratch / "upload.zip"
     storage.get_file(f"jobs/{job_id}/upload.zip", upload)
-    limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
-                          settings.max_recordings, settings.max_frames)
     data = scratch / "data"
-    base = extract_upload(upload, data, limits).relative_to(data)
+    base = extract_upload(upload, data, settings.upload_limits()).relative_to(data)
     upload.unlink()
     config = options.fit_config(settings.model_dir)
     bodies: dict[str, BodyModel] = {}

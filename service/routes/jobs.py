@@ -18,7 +18,7 @@ from ..jobs import TERMINAL, JobOptions
 from ..schemas import JobPage, JobView, job_view
 from ..settings import Settings
 from ..storage import Storage
-from ..upload import UploadError, UploadLimits, validate_upload
+from ..upload import UploadError, validate_upload
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 CONFIGS = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
@@ -66,14 +66,12 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
            ) -> JobView:
     if config not in CONFIGS:
         raise ApiError(422, f"unknown config '{config}' (choose one of {', '.join(CONFIGS)})")
-    limits = UploadLimits(settings.max_extracted_bytes, settings.max_entries,
-                          settings.max_recordings, settings.max_frames)
     job_id = store.new_id()
     with tempfile.NamedTemporaryFile(suffix=".zip") as upload:
         shutil.copyfileobj(file.file, upload, _CHUNK)
         upload.flush()
         try:
-            summary = validate_upload(Path(upload.name), limits, frames,
+            summary = validate_upload(Path(upload.name), settings.upload_limits(), frames,
                                       needs_depth=load_config(config).uses("depth"))
         except UploadError as exc:
             raise ApiError(exc.status, str(exc), file=exc.file) from exc
