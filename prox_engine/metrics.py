@@ -12,10 +12,8 @@ PENETRATION_THRESHOLD = 0.01  # a vertex "penetrates" when more than 1 cm inside
 CONTACT_THRESHOLD = 0.02  # a part "touches" when one of its vertices is within 2 cm
 
 
-@torch.no_grad()
-def penetration_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> dict:
-    """Share of body vertices more than 1 cm inside the scene, their mean and the max depth."""
-    d = scene.signed_distance(vertices[body.scene_vertices])
+def _penetration(d: torch.Tensor) -> dict:
+    """Statistics of the signed distances ``d`` of the scene-relevant body vertices."""
     inside = d < -PENETRATION_THRESHOLD
     depth = torch.relu(-d)
     return {
@@ -23,6 +21,12 @@ def penetration_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> 
         "max_depth_m": float(depth.max()),
         "mean_depth_m": float(depth[inside].mean()) if inside.any() else 0.0,
     }
+
+
+@torch.no_grad()
+def penetration_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> dict:
+    """Share of body vertices more than 1 cm inside the scene, their mean and the max depth."""
+    return _penetration(scene.signed_distance(vertices[body.scene_vertices]))
 
 
 @torch.no_grad()
@@ -43,14 +47,18 @@ def contact_parts(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> list
 
 
 @torch.no_grad()
-def flagged_vertices(vertices: torch.Tensor, body: BodyModel, scene: Scene
-                     ) -> dict[str, list[int]]:
-    """Vertex ids to colour in renders: penetrating (as counted by
-    :func:`penetration_stats`) and touching (as counted by :func:`contact_parts`)."""
+def scene_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene
+                ) -> tuple[dict, dict[str, list[int]]]:
+    """One fit's penetration statistics and touching parts (as :func:`penetration_stats`
+    and :func:`contact_parts`), and the vertex ids behind them, which renders paint; each
+    scene query is made once."""
     ids = torch.nonzero(body.scene_vertices).flatten()
-    inside = scene.signed_distance(vertices[ids]) < -PENETRATION_THRESHOLD
-    touching = torch.cat(list(touching_vertices(vertices, body, scene).values()))
-    return {"penetrating": ids[inside].tolist(), "contact": sorted(set(touching.tolist()))}
+    d = scene.signed_distance(vertices[ids])
+    touching = touching_vertices(vertices, body, scene)
+    stats = {**_penetration(d), "contact_parts": [p for p, t in touching.items() if len(t)]}
+    flagged = {"penetrating": ids[d < -PENETRATION_THRESHOLD].tolist(),
+               "contact": sorted(set(torch.cat(list(touching.values())).tolist()))}
+    return stats, flagged
 
 
 @torch.no_grad()

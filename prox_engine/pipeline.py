@@ -34,12 +34,14 @@ class RecordingResult:
 def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body: BodyModel,
                   max_frames: int | None = None, sequence: bool = False,
                   progress: Progress | None = None,
-                  on_stage: Callable[[str], None] | None = None) -> RecordingResult:
+                  on_stage: Callable[[str], None] | None = None,
+                  source: str | None = None) -> RecordingResult:
     """Fit the frames of one recording and write ``OUT/<rec>/...``.
 
     ``progress(done, total, frame)`` is called after each batch of frames, ``on_stage(name)``
     as each step starts ("scene", then the fitter's stages); an exception raised by either
-    stops the fit.
+    stops the fit. ``source`` names the input in summary.json, where `prox report` looks
+    for the scene (default: BASE's absolute path).
 
     Problems with the recording's shared files (calibration, camera pose, scene) raise
     :class:`InputError`; a bad frame is reported in the summary and skipped.
@@ -87,8 +89,8 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
         if progress:
             progress(done, len(names), names[done - 1])
 
-    summary = _summarise(recording, config, sequence, frames_summary, failures, scene_seconds)
-    summary["data"] = str(Path(base).absolute())  # where `prox report` finds the scene
+    summary = _summarise(recording, source or str(Path(base).absolute()), config, sequence,
+                         frames_summary, failures, scene_seconds)
     write_json(Path(out) / recording / "summary.json", summary)
     return RecordingResult(recording, summary, failures)
 
@@ -115,12 +117,11 @@ def _load_frame(rec: Recording, name: str, camera, config: FitConfig) -> Frame:
 def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
                  body: BodyModel, camera, scene: Scene, config: FitConfig,
                  sequence: bool) -> dict:
-    pen = metrics.penetration_stats(result.vertices, body, scene)
-    touching = metrics.contact_parts(result.vertices, body, scene)
+    scene_stats, flagged = metrics.scene_stats(result.vertices, body, scene)
     error = metrics.reprojection_error(result.keypoints, frame.keypoints, camera,
                                        body.keypoint_mask)
-    stats = {"frame": frame.name, "reprojection_error_px": error, **pen,
-             "contact_parts": touching, "seconds": result.seconds}
+    stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
+             "seconds": result.seconds}
     params = body.export(result.params, 0)
     params["camera"] = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                         "k": camera.k, "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
@@ -129,7 +130,7 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     write_json(json_path, {
         "frame": frame.name, "config": config.name, "sequence": sequence, **params,
         "losses": result.losses, "stats": stats,
-        "vertices_flagged": metrics.flagged_vertices(result.vertices, body, scene),
+        "vertices_flagged": flagged,
         "timings": {"seconds": result.seconds, "stages": result.stage_seconds},
     })
     atomic_write_bytes(ply_path, ply_bytes(result.vertices.numpy(), body.faces.numpy()))
@@ -139,8 +140,9 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     return stats
 
 
-def _summarise(recording: str, config: FitConfig, sequence: bool, frames: list[dict],
-               failures: list[tuple[str, str]], scene_seconds: float) -> dict:
+def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
+               frames: list[dict], failures: list[tuple[str, str]], scene_seconds: float
+               ) -> dict:
     n = len(frames)
     parts = Counter(p for f in frames for p in f["contact_parts"])
     mean = lambda key: sum(f[key] for f in frames) / n if n else None  # noqa: E731
@@ -161,5 +163,6 @@ def _summarise(recording: str, config: FitConfig, sequence: bool, frames: list[d
         "seconds_per_frame": mean("seconds"),
         "scene_setup_seconds": scene_seconds,
         "threads": torch.get_num_threads(),
+        "data": source,
         "frames": frames,
     }

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -40,7 +41,9 @@ class BodyMesh:
     penetrating: np.ndarray | None = None  # vertex ids painted red
     contact: np.ndarray | None = None  # vertex ids painted blue
 
-    def to_pyrender(self) -> pyrender.Mesh:
+    @cached_property
+    def mesh(self) -> pyrender.Mesh:
+        """The coloured mesh, built once however many views draw it."""
         colours = np.tile(np.array([*self.colour, 1.0]), (len(self.vertices), 1))
         if self.contact is not None:
             colours[np.asarray(self.contact, dtype=int), :3] = CONTACT_BLUE
@@ -166,7 +169,7 @@ class SceneRenderer:
         self.scene.set_pose(self.light, gl_pose)
         for name, node in self.scene_nodes.items():
             node.mesh.is_visible = with_scene and name == view
-        nodes = [self.scene.add(b.to_pyrender()) for b in bodies]
+        nodes = [self.scene.add(b.mesh) for b in bodies]
         try:
             # OSMesa has no alpha channel: the depth buffer tells what was drawn.
             colour, depth = self.renderer.render(self.scene)

@@ -8,8 +8,9 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -40,6 +41,7 @@ class FittedRecording:
 
     path: Path
     summary: dict
+    _params: dict[str, dict] = field(default_factory=dict, repr=False)
 
     @classmethod
     def load(cls, path: Path) -> FittedRecording:
@@ -55,7 +57,11 @@ class FittedRecording:
         return self.summary["frames"]
 
     def params(self, frame: str) -> dict:
-        return json.loads((self.path / "results" / frame / "000.json").read_text())
+        """A frame's ``000.json`` (read once; do not modify)."""
+        if frame not in self._params:
+            self._params[frame] = json.loads((self.path / "results" / frame / "000.json")
+                                             .read_text())
+        return self._params[frame]
 
     def vertices(self, frame: str) -> tuple[np.ndarray, np.ndarray]:
         """The fitted mesh (camera frame): vertices (V, 3) and faces (F, 3)."""
@@ -186,10 +192,10 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
     common = {"s": fit.summary, "config": fit.summary["config"],
               "colours": _legend_colours(baseline=False), "every": every}
     pages = {"index.html": env.get_template("sequence.html").render(
-        **common, frames=rows, rendered=rendered, terms=terms, charts=_charts(fit, base),
+        **common, frames=rows, rendered=rendered, terms=terms, charts=_charts([fit]),
         links=links or {}, compare=base.summary if base else None)}
     for i, name in enumerate(names):
-        params = fit.params(name)
+        params = dict(fit.params(name))
         flagged = params.pop("vertices_flagged", {})
         params["vertices_flagged"] = {k: f"{len(v)} vertices" for k, v in flagged.items()}
         views = [(v, VIEW_LABELS[v]) for v in ("overlay", "camera", "top", "side")
@@ -203,7 +209,7 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
         views = [(v, VIEW_LABELS[v]) for v in VIEW_LABELS if v != "overlay"]
         pages["compare.html"] = env.get_template("compare.html").render(
             **{**common, "colours": _legend_colours(baseline=True)}, b=base.summary,
-            rows=_comparison(fit.summary, base.summary), charts=_charts(fit, base, both=True),
+            rows=_comparison(fit.summary, base.summary), charts=_charts([fit, base]),
             rendered=rendered, views=views)
     for name, html in pages.items():
         atomic_write_text(report / name, html)
@@ -250,28 +256,29 @@ def _legend_colours(baseline: bool) -> dict[str, str | None]:
             "penetrating": rgb(PENETRATING_RED), "contact": rgb(CONTACT_BLUE)}
 
 
-def _charts(fit: FittedRecording, base: FittedRecording | None, both: bool = False
-            ) -> list[str]:
-    runs = [fit] + ([base] if both and base else [])
-    x = list(range(len(fit.frames)))
-    label = lambda run: run.summary["config"]  # noqa: E731
+def _charts(runs: list[FittedRecording]) -> list[str]:
+    """Plots over the first run's frames, one line per run."""
+    frames = [f["frame"] for f in runs[0].frames]
 
-    def series(key, scale=1.0):
-        out = {}
+    def series(value: Callable[[dict], float | None]) -> dict[str, list[float | None]]:
+        lines = {}
         for run in runs:
             by_frame = {f["frame"]: f for f in run.frames}
-            out[label(run)] = [by_frame[f["frame"]][key] * scale if f["frame"] in by_frame
-                               and by_frame[f["frame"]][key] is not None else None
-                               for f in fit.frames]
-        return out
+            lines[run.summary["config"]] = [value(by_frame[f]) if f in by_frame else None
+                                            for f in frames]
+        return lines
 
-    contacts = {label(run): [len({g["frame"]: g for g in run.frames}
-                                 .get(f["frame"], {}).get("contact_parts", []))
-                             for f in fit.frames] for run in runs}
-    return [line_chart("penetrating vertices", x, series("penetrating_share", 100), " %"),
-            line_chart("max penetration depth", x, series("max_depth_m", 100), " cm"),
-            line_chart("contact parts touching", x, contacts),
-            line_chart("data error (reprojection)", x, series("reprojection_error_px"), " px")]
+    def scaled(key: str, factor: float = 1.0) -> Callable[[dict], float | None]:
+        return lambda f: None if f[key] is None else f[key] * factor
+
+    x = list(range(len(frames)))
+    return [line_chart("penetrating vertices", x, series(scaled("penetrating_share", 100)),
+                       " %"),
+            line_chart("max penetration depth", x, series(scaled("max_depth_m", 100)), " cm"),
+            line_chart("contact parts touching", x,
+                       series(lambda f: len(f["contact_parts"]))),
+            line_chart("data error (reprojection)", x, series(scaled("reprojection_error_px")),
+                       " px")]
 
 
 def _comparison(fit: dict, base: dict) -> list[dict]:

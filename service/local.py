@@ -63,12 +63,9 @@ class LocalStack:
         try:
             if self.redis_url is None:
                 self._start_redis()
-            self.env = {**os.environ, "PROX_REDIS_URL": self.redis_url,
-                        "PROX_STORAGE_DIR": str(self.storage_dir),
-                        "PROX_API_TOKENS": self.tokens, **self.extra_env}
             self.api = self._spawn("api", [sys.executable, "-m", "uvicorn", "service.app:app",
                                            "--host", "127.0.0.1", "--port", str(self.port),
-                                           "--log-level", "warning"])
+                                           "--log-level", "warning"], self._service_env())
             for _ in range(self.worker_count):
                 self.add_worker()
             self._wait_healthy(timeout)
@@ -79,7 +76,7 @@ class LocalStack:
     def add_worker(self) -> subprocess.Popen:
         name = f"worker-{len(self.workers)}"
         worker = self._spawn(name, [sys.executable, "-m", "worker", "--name",
-                                    f"{name}-{self.port}"])
+                                    f"{name}-{self.port}"], self._service_env())
         self.workers.append(worker)
         return worker
 
@@ -97,10 +94,17 @@ class LocalStack:
         path = self.root / "logs" / f"{name}.log"
         return path.read_text(errors="replace") if path.exists() else ""
 
-    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen:
-        log = (self.root / "logs" / f"{name}.log").open("ab")
-        return subprocess.Popen(argv, env=self.env if name != "redis" else None, stdout=log,
-                                stderr=subprocess.STDOUT, cwd=Path(__file__).parents[1])
+    def _service_env(self) -> dict[str, str]:
+        """The environment of the API and the workers: this stack's Redis and files."""
+        return {**os.environ, "PROX_REDIS_URL": self.redis_url,
+                "PROX_STORAGE_DIR": str(self.storage_dir), "PROX_API_TOKENS": self.tokens,
+                **self.extra_env}
+
+    def _spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None
+               ) -> subprocess.Popen:
+        with (self.root / "logs" / f"{name}.log").open("ab") as log:  # the child keeps a copy
+            return subprocess.Popen(argv, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                    cwd=Path(__file__).parents[1])
 
     def _start_redis(self) -> None:
         server = shutil.which("redis-server")

@@ -3,7 +3,6 @@ recording with the engine, publish the results, and keep the job record current.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import socket
@@ -17,7 +16,6 @@ from rq.timeouts import JobTimeoutException
 
 from prox_engine.body.base import BodyModel
 from prox_engine.errors import InputError
-from prox_engine.output import write_json
 from service.jobs import JobOptions, JobStore
 from service.settings import Settings
 from service.storage import LocalStorage, Storage, zip_tree
@@ -80,17 +78,13 @@ def _reports(out: Path, data: Path, recordings: list[str], options: JobOptions, 
 
     errors = []
     for name in recordings:
-        summary_path = out / name / "summary.json"
-        if not summary_path.exists():
+        if not (out / name / "summary.json").exists():
             continue
         update(stage="report", recording=name)
         try:
             build_report(out / name, data=data, every=options.render_every)
         except Exception as exc:  # noqa: BLE001 - the fit stands without its report
             errors.append({"recording": name, "error": f"report failed ({exc})"})
-        summary = json.loads(summary_path.read_text())
-        summary["data"] = f"the upload of job {job_id}"  # the scratch copy is gone
-        write_json(summary_path, summary)
     write_index(out, recordings, f"prox job {job_id}")
     return errors
 
@@ -142,7 +136,8 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
             with contextlib.chdir(data):
                 result = fit_recording(base, name, out, config, body,
                                        max_frames=options.frames, sequence=options.sequence,
-                                       progress=progress, on_stage=on_stage)
+                                       progress=progress, on_stage=on_stage,
+                                       source=f"the upload of job {job_id}")
         except InputError as exc:
             errors.append({"recording": name, "error": str(exc)})
             done += record["recordings"][name]
