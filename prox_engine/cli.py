@@ -73,8 +73,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
         bar.close()
         for frame, error in result.failures:
             print(f"skipped {frame}: {error}", file=sys.stderr)
+        for event in result.summary["numerical_events"]:
+            print(f"warning {event['frame']}: {event['event']}", file=sys.stderr)
+        if not result.summary["frames_fitted"]:
+            print(f"error: {name}: no frame could be fitted", file=sys.stderr)
+            failed = True
         rows.append(result.summary)
-    _print_summary(rows, config.name, args.sequence, Path(args.out))
+    if rows:
+        _print_summary(rows, config.name, args.sequence, Path(args.out))
     if rows and not args.no_report:
         from .report import build_report, write_index
 

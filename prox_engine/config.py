@@ -35,8 +35,7 @@ class FitConfig:
     data_rho: float = 100.0  # Geman-McClure scale of the reprojection error (pixels)
     ignore_keypoints: list[int] = field(default_factory=lambda: [1, 9, 12])
     joint_limit_weight: float = 1e4  # every stage: anatomical limits are constraints
-    init_depth_weight: float = 100.0  # camera stage: keep the similar-triangles depth
-    flip_shoulder_px: float = 25.0  # try the 180-degree-turned body below this 2D width
+    init_depth_weight: float = 100.0  # start search: hold the similar-triangles depth
     scale_search: bool = True  # resolve depth against the scene before the scene stages
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles

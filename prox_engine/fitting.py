@@ -14,12 +14,11 @@ from . import losses
 from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
-from .geometry import matrix_to_axis_angle, vertex_normals
-from .keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND, SHOULDERS, TORSO_EDGES, Keypoints
+from .geometry import vertex_normals
+from .keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND, Keypoints
+from .initialisation import best_start
 from .scale_search import best_scale
 from .scene import Scene
-
-CAMERA_STAGE_KEYPOINTS = [2, 5, 9, 12]  # shoulders and hips
 
 
 @dataclass
@@ -40,6 +39,7 @@ class FitResult:
     losses: dict[str, float]  # weighted value of each term at the end
     seconds: float
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    events: list[str] = field(default_factory=list)  # numerical trouble met on the way
 
 
 class Fitter:
@@ -57,6 +57,7 @@ class Fitter:
                                  if p in body.contact_parts]
         self.contact_ids = (torch.cat(self.contact_part_ids) if self.contact_part_ids
                             else torch.zeros(0, dtype=torch.long))
+        self.events: list[str] = []  # of the current fit (see FitResult.events)
 
     # ------------------------------------------------------------------ public API
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
@@ -64,13 +65,15 @@ class Fitter:
         """Fit a batch of frames: from scratch with every stage, or (sequence mode) from
         ``warm_start`` with the configuration's sequence stages and the temporal term."""
         start = time.perf_counter()
+        self.events = []
         target, conf = self._targets(frames)
+        conf[:, self.config.ignore_keypoints] = 0
         depth = [f.depth_points for f in frames]
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}
         if warm_start is None:
             self._announce("initialise")
-            params = self._initialise(frames, target, conf)
+            params = self.initialise(frames)
             stage_seconds["camera"] = time.perf_counter() - start
             stages = self.config.stages
             frozen_shape = False
@@ -103,7 +106,8 @@ class Fitter:
             name=f.name, params={k: v[i:i + 1].detach().clone() for k, v in params.items()},
             vertices=out.vertices[i].detach(), keypoints=out.keypoints[i].detach(),
             losses={k: float(v[i]) for k, v in final.items()}, seconds=elapsed,
-            stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()})
+            stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()},
+            events=list(self.events))
             for i, f in enumerate(frames)]
 
     def _announce(self, stage: str) -> None:
@@ -112,10 +116,10 @@ class Fitter:
 
     # ------------------------------------------------------------------ objective
     def _targets(self, frames: list[Frame]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keypoint pixels (B, K, 2) and the detector's confidences (B, K) of the points
+        the model defines; the data term also ignores ``config.ignore_keypoints``."""
         data = torch.tensor(np.stack([f.keypoints.data for f in frames]), dtype=torch.float32)
-        conf = data[..., 2] * self.body.keypoint_mask
-        conf[:, self.config.ignore_keypoints] = 0
-        return data[..., :2], conf
+        return data[..., :2], data[..., 2] * self.body.keypoint_mask
 
     def _terms(self, stage: Stage, out: BodyOutput, params: Params, target: torch.Tensor,
                conf: torch.Tensor, depth: list, previous: torch.Tensor | None
@@ -153,41 +157,22 @@ class Fitter:
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
                    conf: torch.Tensor, depth: list, previous: torch.Tensor | None
                    ) -> dict[str, torch.Tensor]:
-        for name, value in params.items():
-            value.requires_grad_(name in free)
-        variables = [params[n] for n in free]
-        optimizer = torch.optim.LBFGS(variables, lr=1.0,
-                                      max_iter=stage.max_iter or self.config.max_iter,
-                                      line_search_fn="strong_wolfe", tolerance_grad=1e-7,
-                                      tolerance_change=1e-10, history_size=20)
-        last: dict[str, torch.Tensor] = {}
+        """L-BFGS calls on the ``free`` parameters until the loss settles; returns the
+        terms at the accepted point (not at the line search's last probe)."""
 
-        def closure() -> torch.Tensor:
-            optimizer.zero_grad()
-            out = self.body(params)
-            terms = self._terms(stage, out, params, target, conf, depth, previous)
-            total = sum(t.sum() for t in terms.values())
-            total.backward()
-            last.clear()
-            last.update({k: v.detach() for k, v in terms.items()})
-            return total
+        def objective() -> dict[str, torch.Tensor]:
+            return self._terms(stage, self.body(params), params, target, conf, depth, previous)
 
-        previous_loss = math.inf
-        for _ in range(stage.max_calls or self.config.max_calls):
-            backup = [v.detach().clone() for v in variables]
-            loss = float(optimizer.step(closure).detach())
-            if not math.isfinite(loss) or not all(bool(torch.isfinite(v).all())
-                                                  for v in variables):
-                with torch.no_grad():
-                    for v, b in zip(variables, backup):
-                        v.copy_(b)
-                break
-            if abs(previous_loss - loss) <= self.config.ftol * max(1.0, abs(loss)):
-                break
-            previous_loss = loss
-        for value in params.values():
-            value.requires_grad_(False)
-        return last
+        def settled(before: float) -> bool:
+            with torch.no_grad():
+                after = float(sum(t.sum() for t in objective().values()))
+            return abs(before - after) <= self.config.ftol * max(1.0, abs(after))
+
+        self._minimise([params[n] for n in free],
+                       lambda: sum(t.sum() for t in objective().values()), stage.name,
+                       stage.max_iter, stage.max_calls or self.config.max_calls, settled)
+        with torch.no_grad():
+            return objective()
 
     # ------------------------------------------------------------------ scene-aware depth
     @staticmethod
@@ -210,15 +195,20 @@ class Fitter:
         with torch.no_grad():
             params["transl"] *= scale[:, None]
         self._minimise([params[n] for n in ["transl", "global_orient", *body.shape_group()]],
-                       lambda: ((body(params).vertices - goal) ** 2).sum(-1).mean() * 1e4)
+                       lambda: ((body(params).vertices - goal) ** 2).sum(-1).mean() * 1e4,
+                       "scale_search")
 
-    def _minimise(self, variables: list[torch.Tensor],
-                  objective: Callable[[], torch.Tensor]) -> None:
-        """One L-BFGS call (strong Wolfe line search) on ``variables``, in place."""
+    def _minimise(self, variables: list[torch.Tensor], objective: Callable[[], torch.Tensor],
+                  step: str, max_iter: int | None = None, max_calls: int = 1,
+                  settled: Callable[[float], bool] | None = None) -> None:
+        """Up to ``max_calls`` L-BFGS calls (strong Wolfe line search) on ``variables``, in
+        place, stopping early when ``settled(loss before the call)`` says so. A call that ends
+        on non-finite values is undone, ends the step and is recorded in :attr:`events`."""
         for v in variables:
             v.requires_grad_(True)
-        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=self.config.max_iter,
-                                      line_search_fn="strong_wolfe")
+        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=max_iter or self.config.max_iter,
+                                      line_search_fn="strong_wolfe", tolerance_grad=1e-7,
+                                      tolerance_change=1e-10, history_size=20)
 
         def closure() -> torch.Tensor:
             optimizer.zero_grad()
@@ -226,95 +216,31 @@ class Fitter:
             loss.backward()
             return loss
 
-        optimizer.step(closure)
+        for _ in range(max_calls):
+            backup = [v.detach().clone() for v in variables]
+            try:
+                loss = float(optimizer.step(closure).detach())
+            except (IndexError, ValueError):  # non-finite probes: torch's strong Wolfe
+                loss = math.nan  # search loses its bracket, distributions reject NaN
+            if not (math.isfinite(loss) and all(bool(torch.isfinite(v).all())
+                                                for v in variables)):
+                with torch.no_grad():
+                    for v, b in zip(variables, backup):
+                        v.copy_(b)
+                self.events.append(f"{step}: non-finite values, last step undone")
+                break
+            if settled is not None and settled(loss):
+                break
         for v in variables:
             v.requires_grad_(False)
 
     # ------------------------------------------------------------------ initialisation
-    def _initialise(self, frames: list[Frame], target: torch.Tensor,
-                    conf: torch.Tensor) -> Params:
-        """Each of the body's starting postures, upright and facing the camera at the
-        similar-triangles depth, refined by the camera stage; a copy turned by 180 degrees
-        too when the shoulders are close in 2D (SMPLify-X). Per frame, the candidate whose
-        body keypoints reproject best is kept."""
-        body = self.body
+    def initialise(self, frames: list[Frame]) -> Params:
+        """The starting body of each frame (:func:`initialisation.best_start`), upright
+        with respect to the scene's world up (without a scene, the camera's -y), from the
+        detector's confidences (neck and hips included, unlike the data term)."""
+        target, conf = self._targets(frames)
         up = self.scene.up_in_camera() if self.scene is not None else torch.tensor(
             [0.0, -1.0, 0.0])
-        width = (target[:, SHOULDERS[0]] - target[:, SHOULDERS[1]]).norm(dim=-1)
-        turned = bool((width < self.config.flip_shoulder_px).any()) or bool(
-            (conf[:, SHOULDERS[0]] * conf[:, SHOULDERS[1]] == 0).any())
-        body_weight = torch.zeros_like(conf)
-        body_weight[:, BODY] = conf[:, BODY] ** 2
-        candidates, scores = [], []
-        for posture in body.postures:
-            params = body.init_params(len(frames), posture)
-            with torch.no_grad():
-                rest = body(params)
-            depth = self._torso_depth(rest.keypoints, target, conf)
-            for facing in (True, False) if turned else (True,):
-                candidate = self._place(params, rest, target, conf, depth, up, facing)
-                self._camera_stage(candidate, target, conf, depth)
-                with torch.no_grad():
-                    scores.append(losses.keypoint_data(body(candidate), self.camera, target,
-                                                       body_weight, self.config.data_rho))
-                candidates.append(candidate)
-        best = torch.stack(scores).argmin(0)  # (B,)
-        return {k: torch.stack([candidates[int(best[b])][k][b] for b in range(len(frames))])
-                for k in candidates[0]}
-
-    def _torso_depth(self, model_kp: torch.Tensor, target: torch.Tensor,
-                     conf: torch.Tensor) -> torch.Tensor:
-        """fx * mean 3D torso edge / mean 2D torso edge, per frame."""
-        depths = []
-        for b in range(target.shape[0]):
-            e3, e2 = [], []
-            for i, j in TORSO_EDGES + [SHOULDERS]:
-                if conf[b, i] > 0 and conf[b, j] > 0:
-                    e3.append((model_kp[0, i] - model_kp[0, j]).norm())
-                    e2.append((target[b, i] - target[b, j]).norm())
-            if not e2 or float(sum(e2)) < 1e-3:
-                depths.append(torch.tensor(3.0))
-            else:
-                depths.append(self.camera.fx * torch.stack(e3).mean() / torch.stack(e2).mean())
-        return torch.stack(depths).clamp(0.3, 30.0)
-
-    def _place(self, params: Params, rest: BodyOutput, target: torch.Tensor,
-               conf: torch.Tensor, depth: torch.Tensor, up: torch.Tensor,
-               facing: bool) -> Params:
-        body = self.body
-        view = torch.tensor([0.0, 0.0, 1.0])
-        horizontal = view - (view @ up) * up
-        if horizontal.norm() < 1e-3:  # camera looking straight down or up
-            horizontal = torch.tensor([0.0, 1.0, 0.0]) - up[1] * up
-        horizontal = horizontal / horizontal.norm()
-        forward = -horizontal if facing else horizontal
-        # Rotation taking the model's (forward, up) to the camera's (forward, up).
-        model_f, model_u = body.forward_axis(), body.up_axis()
-        src = torch.stack([model_f, model_u, torch.linalg.cross(model_f, model_u)], 1)
-        dst = torch.stack([forward, up, torch.linalg.cross(forward, up)], 1)
-        rotation = dst @ src.T
-        new = {k: v.clone() for k, v in params.items()}
-        new["global_orient"][:] = matrix_to_axis_angle(rotation)
-        torso = CAMERA_STAGE_KEYPOINTS
-        offset = rotation @ rest.keypoints[0, torso].mean(0)
-        for b in range(target.shape[0]):
-            w = conf[b, torso]
-            centre = (target[b, torso] * w[:, None]).sum(0) / w.sum() if w.sum() > 0 else \
-                target[b, BODY][conf[b, BODY] > 0].mean(0)
-            point = self.camera.backproject(centre[0], centre[1], depth[b])
-            new["transl"][b] = point - offset
-        return new
-
-    def _camera_stage(self, params: Params, target: torch.Tensor, conf: torch.Tensor,
-                      depth: torch.Tensor) -> None:
-        """Optimise root rotation and translation on the torso keypoints, in place."""
-        weight = torch.zeros_like(conf)
-        weight[:, CAMERA_STAGE_KEYPOINTS] = conf[:, CAMERA_STAGE_KEYPOINTS] ** 2
-
-        def objective() -> torch.Tensor:
-            loss = losses.keypoint_data(self.body(params), self.camera, target, weight,
-                                        self.config.data_rho)
-            depth_error = (params["transl"][:, 2] - depth) ** 2
-            return (loss + self.config.init_depth_weight * depth_error).sum()
-
-        self._minimise([params["transl"], params["global_orient"]], objective)
+        return best_start(self.body, self.camera, target, conf, up, self.config.data_rho,
+                          self.config.init_depth_weight, events=self.events)

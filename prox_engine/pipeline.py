@@ -121,7 +121,7 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     error = metrics.reprojection_error(result.keypoints, frame.keypoints, camera,
                                        body.keypoint_mask)
     stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
-             "seconds": result.seconds}
+             "seconds": result.seconds, "events": result.events}
     params = body.export(result.params, 0)
     params["camera"] = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                         "k": camera.k, "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
@@ -150,6 +150,8 @@ def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
         "recording": recording, "config": config.name, "sequence": sequence,
         "frames_fitted": n, "frames_failed": len(failures),
         "failures": [{"frame": f, "error": e} for f, e in failures],
+        "numerical_events": [{"frame": f["frame"], "event": e} for f in frames
+                             for e in f["events"]],
         "penetration": {
             "mean_penetrating_share": mean("penetrating_share"),
             "max_depth_m": max((f["max_depth_m"] for f in frames), default=None),

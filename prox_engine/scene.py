@@ -43,8 +43,9 @@ class Scene:
         return points @ self.cam2world[:3, :3].T + self.cam2world[:3, 3]
 
     def up_in_camera(self) -> torch.Tensor:
-        """World up (+z) expressed in camera coordinates."""
-        return self.cam2world[:3, 2].clone()
+        """World up (+z) expressed in camera coordinates: R^T e_z, the third row of the
+        camera-to-world rotation (its third column is the viewing axis in the world)."""
+        return self.cam2world[2, :3].clone()
 
     def signed_distance(self, points_cam: torch.Tensor) -> torch.Tensor:
         """SDF values at camera-frame points (..., 3); negative inside the scene."""

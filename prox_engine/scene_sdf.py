@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,13 +163,14 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
 def _exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.ndarray,
                            tri: torch.Tensor, normals: torch.Tensor, k: int = 6
                            ) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance and nearest surface point of each point.
+    """Signed distance and nearest surface point of each point (the k-d tree uses as many
+    threads as torch, so PROX_THREADS bounds it).
 
     The candidates are the faces of the k nearest surface samples. Among faces at the same
     distance (nearest point on a shared edge or vertex) the one whose plane the point is
     farthest from decides the sign, which is right on both convex and concave edges.
     """
-    _, nearest = tree.query(points, k=k, workers=os.cpu_count() or 1)
+    _, nearest = tree.query(points, k=k, workers=torch.get_num_threads())
     cand = torch.from_numpy(sample_face[nearest])  # N, k
     p = torch.from_numpy(points)[:, None].expand(-1, k, -1)
     t = tri[cand]  # N, k, 3, 3

@@ -59,6 +59,17 @@ def test_missing_scene_is_a_clear_error(sitting_data, tmp_path):
     assert run.returncode == 1
     assert "Synthetic.ply: scene mesh not found" in run.stderr
     assert "Traceback" not in run.stderr
+    assert "results in" not in run.stdout and not (tmp_path / "out").exists()
+
+
+def test_every_frame_failing_is_a_failed_run(sitting_data, tmp_path):
+    base = tmp_path / "data"
+    shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
+    for path in (base / "keypoints" / REC).iterdir():
+        path.write_text('{"people": []}')
+    run = cli_fit(base, tmp_path / "out", coarse_config(tmp_path, "rgb"), "--no-report")
+    assert run.returncode == 1
+    assert f"{REC}: no frame could be fitted" in run.stderr
 
 
 def test_sequence_mode_warm_starts(sitting_data, tmp_path):

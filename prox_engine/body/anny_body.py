@@ -67,10 +67,19 @@ _BODY25_FROM_COCO = {
 ADULT_AGE_YEARS = 35.0
 # Starting poses (local-bone axis-angle); the fitter keeps the one that explains the
 # keypoints best: from standing, thighs seen end-on are as likely to swing back as forward.
+def _legs(hip: float, knee: float) -> dict[str, list[float]]:
+    return {"upperleg01.L": [hip, 0.0, 0.0], "upperleg01.R": [hip, 0.0, 0.0],
+            "lowerleg01.L": [knee, 0.0, 0.0], "lowerleg01.R": [knee, 0.0, 0.0]}
+
+
 _POSTURES = {
     "standing": {},
-    "sitting": {"upperleg01.L": [-1.4, 0.0, 0.0], "upperleg01.R": [-1.4, 0.0, 0.0],
-                "lowerleg01.L": [1.4, 0.0, 0.0], "lowerleg01.R": [1.4, 0.0, 0.0]},
+    "sitting": _legs(-1.4, 1.4),
+    "leaning": {"spine03": [0.25, 0.0, 0.0], "spine02": [0.25, 0.0, 0.0],
+                "spine01": [0.25, 0.0, 0.0]},
+    "kneeling": _legs(-0.2, 2.0),
+    "crouching": {**_legs(-2.0, 2.3), "spine02": [0.3, 0.0, 0.0]},
+    "lying": _legs(-0.2, 0.4),
 }
 
 
@@ -112,8 +121,15 @@ class AnnyBody(BodyModel):
         age = self.shape_distribution.morphological_age_mapping.morphological_to_anny_age(
             torch.tensor([age_years]))
         self.register_buffer("prior_age", age)
-        mean = torch.tensor([[0.5, float(age), 0.5, 0.5, 0.5, 0.5]])
-        self.register_buffer("shape_init", torch.logit(mean.clamp(1e-3, 1 - 1e-3)))
+        # The starting shape is the prior's mean adult (genders alike): a starting body
+        # taller than the mean person puts every monocular fit too far away.
+        mean = [0.5, float(age), 0.5, 0.5, 0.5, 0.5]
+        for column, name in ((2, "muscle"), (3, "weight"), (4, "height"), (5, "proportions")):
+            mean[column] = float(sum(
+                getattr(self.shape_distribution, f"{who}_conditional_{name}_distribution")
+                .get_torch_distribution(age).mean for who in ("boys", "girls")) / 2)
+        self.register_buffer("shape_init", torch.logit(torch.tensor([mean]).clamp(1e-3,
+                                                                                  1 - 1e-3)))
 
         regressor = anny.KeypointsRegressor.coco(model)
         weights = torch.zeros(N_KEYPOINTS, len(model.template_vertices))
@@ -275,6 +291,7 @@ class AnnyBody(BodyModel):
 
     # ----------------------------------------------------------------- parameters
     postures = tuple(_POSTURES)
+    lying_postures = ("lying",)
 
     def init_params(self, batch_size: int, posture: str = "standing") -> Params:
         def zeros(*shape: int) -> torch.Tensor:
@@ -291,6 +308,9 @@ class AnnyBody(BodyModel):
 
     def shape_group(self) -> list[str]:
         return ["shape"]
+
+    def root_pivot(self, params: Params) -> torch.Tensor:
+        return params["transl"].new_zeros(params["transl"].shape)  # the root is the origin
 
     def up_axis(self) -> torch.Tensor:
         return torch.tensor([0.0, 0.0, 1.0])

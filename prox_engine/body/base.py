@@ -31,6 +31,7 @@ class BodyModel(ABC, torch.nn.Module):
     collision_pairs: torch.Tensor  # (P, 2) sphere index pairs that must not overlap
 
     postures: tuple[str, ...] = ("standing",)  # starting poses init_params can give
+    lying_postures: tuple[str, ...] = ()  # those that start horizontal, not upright
 
     @abstractmethod
     def init_params(self, batch_size: int, posture: str = "standing") -> Params:
@@ -59,6 +60,11 @@ class BodyModel(ABC, torch.nn.Module):
     @abstractmethod
     def shape_prior(self, params: Params) -> torch.Tensor:
         """(B,) negative log-likelihood of the body shape."""
+
+    @abstractmethod
+    def root_pivot(self, params: Params) -> torch.Tensor:
+        """(B, 3) the point about which ``global_orient`` turns the body, before
+        ``transl`` is added."""
 
     @abstractmethod
     def up_axis(self) -> torch.Tensor:

@@ -59,10 +59,20 @@ RIGHT_HAND_21 = [21, 52, 53, 54, 71, 40, 41, 42, 72, 43, 44, 45, 73, 49, 50, 51,
 SEGMENT_FILES = {"left_hand": "L_Hand", "right_hand": "R_Hand", "left_foot": "L_Leg",
                  "right_foot": "R_Leg", "back": "back", "gluteus": "gluteus",
                  "thighs": "thighs"}
+def _legs(hip: float, knee: float) -> dict[str, list[float]]:
+    return {"left_hip": [hip, 0.0, 0.0], "right_hip": [hip, 0.0, 0.0],
+            "left_knee": [knee, 0.0, 0.0], "right_knee": [knee, 0.0, 0.0]}
+
+
+# Hip flexion is -x, knee and trunk flexion +x, as for anny.
 _POSTURES = {
     "standing": {},
-    "sitting": {"left_hip": [-1.4, 0.0, 0.0], "right_hip": [-1.4, 0.0, 0.0],
-                "left_knee": [1.4, 0.0, 0.0], "right_knee": [1.4, 0.0, 0.0]},
+    "sitting": _legs(-1.4, 1.4),
+    "leaning": {"spine1": [0.25, 0.0, 0.0], "spine2": [0.25, 0.0, 0.0],
+                "spine3": [0.25, 0.0, 0.0]},
+    "kneeling": _legs(-0.2, 2.0),
+    "crouching": {**_legs(-2.0, 2.3), "spine2": [0.3, 0.0, 0.0]},
+    "lying": _legs(-0.2, 0.4),
 }
 # Limits (radians) of the joints that bend one way only; the others are free. Knees flex
 # about +x; the left elbow flexes about -y, the right about +y (SMPLify's bending prior).
@@ -149,6 +159,7 @@ class SMPLXBody(BodyModel):
 
     name = "smplx"
     postures = tuple(_POSTURES)
+    lying_postures = ("lying",)
 
     def __init__(self, data: dict[str, np.ndarray], path: Path, gender: str = "neutral",
                  hand_pca: int = 12, segments: dict[str, np.ndarray] | None = None,
@@ -343,6 +354,12 @@ class SMPLXBody(BodyModel):
         if self.vposer is None:
             return params["body_pose"]
         return matrix_to_axis_angle(self.vposer.decode(params["pose_embedding"]))
+
+    def root_pivot(self, params: Params) -> torch.Tensor:
+        """The pelvis joint of the shaped rest body."""
+        coeffs = torch.cat([params["betas"], params["expression"]], 1)
+        shaped = self.v_template + torch.einsum("bl,vdl->bvd", coeffs, self.shapedirs)
+        return torch.einsum("v,bvd->bd", self.J_regressor[0], shaped)
 
     def up_axis(self) -> torch.Tensor:
         return torch.tensor([0.0, 1.0, 0.0])

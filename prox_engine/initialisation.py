@@ -1,0 +1,204 @@
+"""Starting bodies for a fit: each starting posture of the body model in a set of root
+orientations (upright and turned about world up, or lying on the back, a side or the front
+with the head toward any horizontal direction), each moved rigidly (root rotation and
+translation only) onto the keypoints; per frame the candidate that explains the body
+keypoints best is kept.
+
+Moving a posture rigidly moves its keypoints rigidly, so every candidate is fitted from one
+evaluation of the body per posture: hundreds of candidates cost less than one body stage.
+Depth comes from similar triangles on the torso, foreshortened as the candidate's
+orientation foreshortens it, and is held softly while the candidate turns (SMPLify-X's
+camera stage, generalised to any orientation).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .body.base import BodyModel, Params
+from .camera import Camera
+from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
+from .keypoints import BODY, TORSO_EDGES
+from .losses import gmof
+
+TORSO = [1, 2, 5, 8, 9, 12]  # neck, shoulders, mid-hip, hips: nearly rigid in any posture
+LIMB_WEIGHT = 0.25  # the other body keypoints guide the rigid fit less than the torso
+UPRIGHT_TURNS = 4  # upright candidates: facing the camera, then turned by 90 degrees each
+LYING_TURNS = 8  # lying candidates: head toward each of 8 horizontal directions
+
+
+@dataclass
+class Candidates:
+    """Starting postures and root rotations (model frame to camera frame)."""
+
+    postures: list[str]  # (C,)
+    rotations: torch.Tensor  # (C, 3, 3)
+
+
+def candidates(body: BodyModel, up: torch.Tensor) -> Candidates:
+    """Every posture upright and turned about ``up`` (world up in camera coordinates);
+    the body's lying postures also on the back, each side and the front."""
+    view = torch.tensor([0.0, 0.0, 1.0])
+    toward = -(view - (view @ up) * up)  # horizontal direction toward the camera
+    if toward.norm() < 1e-3:  # looking straight down or up
+        toward = torch.tensor([0.0, 1.0, 0.0]) - up[1] * up
+    toward = toward / toward.norm()
+    side = torch.linalg.cross(up, toward)
+
+    def horizontal(angle: float) -> torch.Tensor:
+        return math.cos(angle) * toward + math.sin(angle) * side
+
+    def turns(count: int) -> list[torch.Tensor]:
+        return [horizontal(2 * math.pi * i / count) for i in range(count)]
+
+    postures, frames = [], []  # frames: the model's (forward, up) in camera coordinates
+    for posture in body.postures:
+        if posture in body.lying_postures:
+            for head in turns(LYING_TURNS):
+                across = torch.linalg.cross(up, head)
+                for forward in (up, across, -across, -up):  # back, sides, front
+                    postures.append(posture)
+                    frames.append((forward, head))
+        else:
+            for forward in turns(UPRIGHT_TURNS):
+                postures.append(posture)
+                frames.append((forward, up))
+    model_f, model_u = body.forward_axis(), body.up_axis()
+    src = torch.stack([model_f, model_u, torch.linalg.cross(model_f, model_u)], 1)
+    rotations = torch.stack([torch.stack([f, u, torch.linalg.cross(f, u)], 1) @ src.T
+                             for f, u in frames])
+    return Candidates(postures, rotations)
+
+
+def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torch.Tensor,
+               up: torch.Tensor, rho: float, depth_weight: float, max_iter: int = 30,
+               events: list[str] | None = None) -> Params:
+    """Parameters (B frames) of the best rigidly fitted candidate per frame. ``target``
+    (B, K, 2) pixels and ``conf`` (B, K) the detector's confidences."""
+    batch = target.shape[0]
+    cands = candidates(body, up)
+    names = sorted(set(cands.postures))
+    rest = {}
+    for name in names:
+        params = body.init_params(1, name)
+        with torch.no_grad():
+            rest[name] = (body(params).keypoints[0, BODY], body.root_pivot(params)[0])
+    kp0 = torch.stack([rest[p][0] for p in cands.postures])  # (C, 25, 3)
+    pivot = torch.stack([rest[p][1] for p in cands.postures])  # (C, 3)
+    count = len(cands.postures)
+
+    tgt, seen = target[:, BODY], conf[:, BODY]
+    centre_w = _centre_weights(seen, events)  # (B, 25)
+    fit_w = seen ** 2 * LIMB_WEIGHT
+    fit_w[:, TORSO] = seen[:, TORSO] ** 2
+    # Everything (B, C, ...) flattened to (B * C, ...).
+    rot0 = cands.rotations.repeat(batch, 1, 1)
+    kp = kp0.repeat(batch, 1, 1) - pivot.repeat(batch, 1)[:, None]
+    w_c = centre_w.repeat_interleave(count, 0)
+    flat_target = tgt.repeat_interleave(count, 0)
+    flat_seen = seen.repeat_interleave(count, 0)
+    flat_w = fit_w.repeat_interleave(count, 0)
+    centre_px = torch.einsum("nk,nkd->nd", w_c, flat_target)
+    turn = torch.zeros(batch * count, 3)
+    transl = torch.zeros(batch * count, 3)
+
+    def rotated() -> torch.Tensor:
+        return kp @ (axis_angle_to_matrix(turn) @ rot0).transpose(1, 2)
+
+    def data(points: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        squared = ((camera.project(points) - flat_target) ** 2).sum(-1)
+        return (weight * gmof(squared, rho)).sum(1)
+
+    # Two rounds: a candidate may turn far from where it started (a lying posture turned
+    # upright), and its similar-triangles depth follows its orientation.
+    for _ in range(2):
+        with torch.no_grad():
+            posed = rotated()
+            depth = _depth(camera, posed, flat_target, flat_seen, centre_px)
+            ray = camera.backproject(centre_px[:, 0], centre_px[:, 1], depth)
+            transl = ray - torch.einsum("nk,nkd->nd", w_c, posed)
+        turn.requires_grad_(True)
+        transl.requires_grad_(True)
+        optimizer = torch.optim.LBFGS([turn, transl], lr=1.0, max_iter=max_iter,
+                                      line_search_fn="strong_wolfe", tolerance_grad=1e-7,
+                                      tolerance_change=1e-10, history_size=20)
+
+        def closure() -> torch.Tensor:
+            optimizer.zero_grad()
+            points = rotated() + transl[:, None]
+            held = (torch.einsum("nk,nk->n", w_c, points[..., 2]) - depth) ** 2
+            loss = (data(points, flat_w) + depth_weight * held).sum()
+            loss.backward()
+            return loss
+
+        backup = (turn.detach().clone(), transl.detach().clone())
+        try:
+            optimizer.step(closure)
+        except (IndexError, ValueError):  # a non-finite probe
+            pass
+        turn.requires_grad_(False)
+        transl.requires_grad_(False)
+        if not (torch.isfinite(turn).all() and torch.isfinite(transl).all()):
+            turn, transl = backup
+            if events is not None:
+                events.append("initialise: non-finite values in the rigid fit, undone")
+    keypoints = lambda: rotated() + transl[:, None]  # noqa: E731
+    with torch.no_grad():
+        score = data(keypoints(), flat_seen ** 2).view(batch, count)
+        score = torch.nan_to_num(score, nan=math.inf)
+        best = score.argmin(1)
+        rotation = axis_angle_to_matrix(turn) @ rot0
+        chosen = torch.arange(batch) * count + best
+        params_by_frame = []
+        for b in range(batch):
+            n = int(chosen[b])
+            params = body.init_params(1, cands.postures[int(best[b])])
+            params["global_orient"] = matrix_to_axis_angle(rotation[n:n + 1])
+            # The pivot turns with the root: the translation that puts it where the fit did.
+            params["transl"] = (transl[n] + pivot[int(best[b])] - body.root_pivot(params)[0]
+                                )[None]
+            params_by_frame.append(params)
+    return {k: torch.cat([p[k] for p in params_by_frame]) for k in params_by_frame[0]}
+
+
+def _centre_weights(seen: torch.Tensor, events: list[str] | None) -> torch.Tensor:
+    """(B, 25) weights summing to one over the seen torso points, else over every seen body
+    keypoint, else all body keypoints alike (nothing seen)."""
+    torso = torch.zeros_like(seen)
+    torso[:, TORSO] = seen[:, TORSO]
+    weights = torch.where(torso.sum(1, keepdim=True) > 0, torso, seen.clone())
+    unseen = weights.sum(1) <= 0
+    if bool(unseen.any()):
+        if events is not None:
+            events.append("initialise: no body keypoint seen")
+        weights[unseen] = 1.0
+    return weights / weights.sum(1, keepdim=True)
+
+
+def _depth(camera: Camera, posed: torch.Tensor, target: torch.Tensor, seen: torch.Tensor,
+           centre_px: torch.Tensor) -> torch.Tensor:
+    """Similar-triangles depth (N,) of each candidate: f * projected 3D torso edge / 2D
+    torso edge, each a mean over the edges weighted by their end points' confidences, the
+    3D edges foreshortened across the viewing ray as the candidate's orientation makes
+    them; the shoulder width when no torso edge is seen, 3 m when nothing is."""
+    ray = torch.stack([(centre_px[:, 0] - camera.cx) / camera.fx,
+                       (centre_px[:, 1] - camera.cy) / camera.fy,
+                       torch.ones(len(centre_px))], 1)
+    ray = ray / ray.norm(dim=1, keepdim=True)
+    i, j = (torch.tensor(side) for side in zip(*TORSO_EDGES))
+    weight = seen[:, i] * seen[:, j]  # (N, E)
+    shoulders = seen[:, 2] * seen[:, 5]
+    use_shoulders = (weight.sum(1) <= 0)[:, None]
+    i = torch.where(use_shoulders, torch.tensor(2), i)
+    j = torch.where(use_shoulders, torch.tensor(5), j)
+    weight = torch.where(use_shoulders, shoulders[:, None], weight)
+    rows = torch.arange(len(posed))[:, None]
+    e3 = posed[rows, i] - posed[rows, j]  # (N, E, 3)
+    across = (e3 - (e3 * ray[:, None]).sum(-1, keepdim=True) * ray[:, None]).norm(dim=-1)
+    e2 = (target[rows, i] - target[rows, j]).norm(dim=-1)
+    total = weight.sum(1)
+    ok = (total > 0) & ((weight * e2).sum(1) > 1e-3 * total.clamp_min(1e-9))
+    depth = camera.fx * (weight * across).sum(1) / (weight * e2).sum(1).clamp_min(1e-9)
+    return torch.where(ok, depth, torch.full_like(depth, 3.0)).clamp(0.3, 30.0)

@@ -1,0 +1,212 @@
+"""The fitter's own mechanics: world up, initialisation, what a stage reports, numerical
+trouble. Cameras are tilted, rolled and off-centre so that a row/column mix-up fails."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from prox_engine import scene_sdf
+from prox_engine.camera import Camera
+from prox_engine.config import FitConfig, Stage, load_config
+from prox_engine.fitting import Fitter, Frame
+from prox_engine.keypoints import N_KEYPOINTS, Keypoints
+from prox_engine.scene import Scene
+from prox_engine.scene_sdf import compute_sdf
+from prox_engine.synthetic import look_at
+
+from .conftest import plane_mesh
+
+CAMERA = Camera(fx=1000.0, fy=1000.0, cx=960.0, cy=540.0)
+
+
+def tilted_camera(position=(1.7, -2.4, 1.6), target=(0.2, 0.3, 0.9),
+                  roll_deg: float = 25.0) -> np.ndarray:
+    """A camera-to-world pose looking down at ``target`` from an off-centre position,
+    rolled about its viewing axis, so that none of its axes is a world axis."""
+    pose = look_at(np.asarray(position), np.asarray(target))
+    pose[:3, :3] = pose[:3, :3] @ Rotation.from_euler("z", roll_deg, degrees=True).as_matrix()
+    return pose
+
+
+def floor_scene(cam2world: np.ndarray) -> Scene:
+    floor = plane_mesh(size=8.0)
+    sdf = compute_sdf(floor.vertices, floor.faces, dim=48, padding=0.5)
+    return Scene(floor.vertices, floor.faces, cam2world, sdf, sample_spacing=0.1)
+
+
+def world_to_camera(points: torch.Tensor, cam2world: np.ndarray) -> torch.Tensor:
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    return (points - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation
+
+
+def frame_of(keypoints_cam: torch.Tensor, camera: Camera = CAMERA) -> Frame:
+    """A frame whose body keypoints are the exact projections of ``keypoints_cam``."""
+    data = np.zeros((N_KEYPOINTS, 3))
+    data[:25, :2] = camera.project(keypoints_cam[:25]).numpy()
+    data[:25, 2] = 0.9
+    return Frame("f", Keypoints(data, has_hands=False, has_face=False))
+
+
+def standing_person(body, cam2world: np.ndarray, yaw: float = 0.0
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """World vertices and camera-frame BODY_25 keypoints of a mean standing body on the
+    floor at the camera's target, facing the camera turned by ``yaw``."""
+    params = body.init_params(1)
+    to_camera = cam2world[:2, 3] - np.array([0.2, 0.3])
+    heading = math.atan2(to_camera[0], -to_camera[1]) + yaw  # the body faces -y at 0
+    params["global_orient"][0] = torch.tensor([0.0, 0.0, heading])
+    with torch.no_grad():
+        out = body(params)
+    shift = torch.tensor([0.2, 0.3, 0.0]) - torch.tensor(
+        [*out.vertices[0, :, :2].mean(0), out.vertices[0, :, 2].min()])
+    return out.vertices[0] + shift, world_to_camera(out.keypoints[0] + shift, cam2world)
+
+
+def test_world_up_in_camera_coordinates():
+    """up_in_camera is R^T e_z: a step along it in the camera frame is a step up in the
+    world, and it is not the viewing axis R e_z."""
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    up = scene.up_in_camera()
+    assert torch.allclose(up, torch.tensor(cam2world[:3, :3].T[:, 2], dtype=torch.float32))
+    point = torch.tensor([[0.3, -0.2, 2.5]])
+    moved = scene.to_world(point + 0.5 * up) - scene.to_world(point)
+    assert torch.allclose(moved, torch.tensor([[0.0, 0.0, 0.5]]), atol=1e-5)
+    viewing_axis = torch.tensor(cam2world[:3, 2], dtype=torch.float32)
+    assert float((up - viewing_axis).norm()) > 0.5
+
+
+@pytest.mark.parametrize("yaw", [0.0, 1.0])
+def test_initialisation_is_upright_at_the_true_depth(body, yaw):
+    """Seen by a tilted, rolled camera, a standing person (facing it, or turned by about
+    60 degrees, which narrows the shoulders) starts upright in the world and within 10 %
+    of the true torso depth."""
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    _, keypoints = standing_person(body, cam2world, yaw)
+    fitter = Fitter(body, CAMERA, load_config("rgb"), scene)
+    params = fitter.initialise([frame_of(keypoints)])
+    with torch.no_grad():
+        out = body(params)
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    spine = out.keypoints[0, 1] - out.keypoints[0, 8]  # mid-hip to neck, camera frame
+    spine_world = rotation @ (spine / spine.norm())
+    assert float(spine_world[2]) > math.cos(math.radians(20))
+    torso = [2, 5, 9, 12]
+    true_depth = float(keypoints[torso, 2].mean())
+    assert abs(float(out.keypoints[0, torso, 2].mean()) / true_depth - 1) < 0.10
+
+
+def test_initialisation_with_only_neck_and_hips(body):
+    """Only the neck and hips seen (no shoulders): the body is still placed where they
+    are, with finite parameters."""
+    cam2world = tilted_camera()
+    _, keypoints = standing_person(body, cam2world)
+    frame = frame_of(keypoints)
+    seen = [1, 8, 9, 12, 10, 13]
+    frame.keypoints.data[[i for i in range(25) if i not in seen], 2] = 0
+    fitter = Fitter(body, CAMERA, load_config("rgb"), floor_scene(cam2world))
+    params = fitter.initialise([frame])
+    assert all(bool(torch.isfinite(v).all()) for v in params.values())
+    with torch.no_grad():
+        hips = CAMERA.project(body(params).keypoints[0, [9, 12]]).mean(0)
+    assert float((hips - torch.tensor(frame.keypoints.data[[9, 12], :2]).mean(0)).norm()) < 40
+
+
+def test_stage_reports_terms_at_the_accepted_point(body):
+    """The losses a fit reports are the terms at its final parameters (not at the line
+    search's last probe)."""
+    cam2world = tilted_camera()
+    _, keypoints = standing_person(body, cam2world)
+    config = FitConfig("short", [Stage("global", {"body": 1.0, "pose_prior": 30.0,
+                                                  "shape": 30.0, "bending": 30.0})],
+                       max_iter=5, max_calls=1)
+    fitter = Fitter(body, CAMERA, config)
+    frame = frame_of(keypoints + torch.tensor([0.05, 0.0, 0.0]) * torch.rand(len(keypoints), 1))
+    result = fitter.fit([frame])[0]
+    target, conf = fitter._targets([frame])
+    conf[:, config.ignore_keypoints] = 0
+    with torch.no_grad():
+        terms = fitter._terms(config.stages[0], body(result.params), result.params, target,
+                              conf, [None], None)
+    for name, value in terms.items():
+        assert result.losses[name] == pytest.approx(float(value), rel=1e-4, abs=1e-6), name
+
+
+def test_stage_stops_after_the_call_that_settles(body):
+    """With a tolerance every change meets, a stage makes one L-BFGS call however many it
+    may make: the loss before a call is compared with the loss after it."""
+    cam2world = tilted_camera()
+    _, keypoints = standing_person(body, cam2world)
+    frame = frame_of(keypoints)
+    evaluations = []
+    hook = body.register_forward_hook(lambda *_: evaluations.append(1))
+    try:
+        counts = []
+        for calls in (1, 3):
+            stage = Stage("global", {"body": 1.0, "pose_prior": 30.0}, optimize_shape=False)
+            config = FitConfig("short", [stage], max_iter=4, max_calls=calls, ftol=1e9)
+            fitter = Fitter(body, CAMERA, config)
+            params = fitter.initialise([frame])
+            target, conf = fitter._targets([frame])
+            evaluations.clear()
+            fitter._run_stage(stage, params, ["transl", "global_orient", "body_pose"], target,
+                              conf, [None], None)
+            counts.append(len(evaluations))
+    finally:
+        hook.remove()
+    assert counts[0] == counts[1]
+
+
+def test_non_finite_step_is_undone_and_recorded(body):
+    """A step that reaches non-finite values is undone and recorded as an event."""
+    fitter = Fitter(body, CAMERA, load_config("rgb"))
+    x = torch.tensor([0.0])
+    objective = lambda: torch.where(x > 1.0, torch.full_like(x, math.nan),  # noqa: E731
+                                    (x - 5.0) ** 2).sum()
+    fitter._minimise([x], objective, "probe")
+    assert float(x) <= 1.0 and math.isfinite(float(x))
+    assert fitter.events == ["probe: non-finite values, last step undone"]
+
+
+def test_sdf_kd_tree_uses_torch_threads(monkeypatch):
+    """The SDF's k-d tree queries run on as many threads as torch (PROX_THREADS), not on
+    every core of the machine."""
+    seen = []
+
+    class Tree(scene_sdf.cKDTree):
+        def query(self, *args, **kwargs):
+            seen.append(kwargs.get("workers", 1))
+            return super().query(*args, **kwargs)
+
+    monkeypatch.setattr(scene_sdf, "cKDTree", Tree)
+    plane = plane_mesh()
+    compute_sdf(plane.vertices, plane.faces, dim=24)
+    assert seen and set(seen) == {torch.get_num_threads()}
+
+
+def test_numerical_events_reach_results_and_summary(sitting_data, tmp_path, body):
+    """A configuration whose prior weight overflows float32: the stage's steps are undone,
+    the frame is still written, and what happened is in its results and the summary."""
+    from prox_engine.config import CONFIG_DIR
+    from prox_engine.pipeline import fit_recording
+
+    from .conftest import REC
+
+    path = tmp_path / "overflow.yaml"
+    path.write_text((CONFIG_DIR / "rgb.yaml").read_text().replace(
+        "pose_prior: 30,", "pose_prior: 1.0e+38,") + "sdf_dim: 64\n")
+    config = load_config(path)
+    result = fit_recording(sitting_data, REC, tmp_path / "out", config, body, max_frames=1)
+    events = result.summary["numerical_events"]
+    frame = result.summary["frames"][0]["frame"]
+    written = json.loads((tmp_path / "out" / REC / "results" / frame / "000.json").read_text())
+    assert result.summary["frames_fitted"] == 1
+    assert events and all(e["frame"] == frame and e["event"].startswith("global:")
+                          for e in events)
+    assert written["stats"]["events"] == [e["event"] for e in events]
