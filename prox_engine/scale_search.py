@@ -13,10 +13,14 @@ import torch
 from .losses import contact_distances, gmof
 from .scene import Scene
 
-SCALES = torch.exp(torch.linspace(math.log(0.5), math.log(2.0), 97))
+SCALES = torch.exp(torch.linspace(math.log(0.7), math.log(1.4), 97))
 PENETRATION_SCALE = 0.02  # a vertex 2 cm inside counts fully as penetrating
+PENETRATION_WEIGHT = 10.0  # 10 % of the body inside the scene outweighs every contact
 SCALE_SIGMA = 0.06  # spread of adult body size around the fitted (prior-mean) size
-PRIOR_WEIGHT = 0.005  # breaks ties where the scene says nothing
+# Scaled by 0.1, the size prior lets the scene move a body by up to about 25 % (4.5 sigma)
+# when that brings every contact part onto a surface, but not by 6-12 % only to touch a
+# wall behind it with the back.
+PRIOR_WEIGHT = 0.1
 
 
 @torch.no_grad()
@@ -35,7 +39,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         cost = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
         if use_penetration:
             depth = torch.relu(-scene.signed_distance(scales * vertices[b, scene_vertices]))
-            cost = cost + (depth / PENETRATION_SCALE).clamp(max=1.0).mean(1)
+            cost = cost + PENETRATION_WEIGHT * (depth / PENETRATION_SCALE).clamp(max=1.0).mean(1)
         if use_contact and contact_parts:
             misses = []
             for ids in contact_parts:

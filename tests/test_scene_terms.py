@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import torch
+import trimesh
 
 from prox_engine.camera import Camera
 from prox_engine.losses import contact_energy, penetration_energy
@@ -34,7 +35,6 @@ def test_sdf_far_field_keeps_room_air_outside():
     """Far from every surface, an open furniture box on a floor in a non-cubic room must
     not flip the air above the floor to inside (the sign comes from the band around the
     surface, not from a far-away edge's normal) and distances must be metric."""
-    import trimesh
 
     floor = plane_mesh()  # 4 m x 4 m at z = 0, normal up
     box = trimesh.creation.box([0.5, 0.5, 0.5])
@@ -155,3 +155,32 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
     scale = best_scale(far, vertex_normals(far, body.faces), body.scene_vertices, parts, scene,
                        True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) * 1.2 - 1.0) < 0.03
+
+
+def test_scale_search_keeps_a_body_standing_before_a_wall(body):
+    """A correctly placed standing body with a wall 20 cm behind it keeps its scale within
+    2 %: moving it back would touch the wall with the back but sink the feet."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.scale_search import best_scale
+
+    with torch.no_grad():
+        world = body(body.init_params(1)).vertices[0]  # faces -y, back toward +y
+    world = world - torch.tensor([0.0, 0.0, float(world[:, 2].min())])
+    back = float(world[body.scene_vertices, 1].max())
+    floor = plane_mesh(size=10.0)
+    wall = trimesh.Trimesh([[-5, back + 0.2, 0], [5, back + 0.2, 0], [5, back + 0.2, 3],
+                            [-5, back + 0.2, 3]], [[0, 1, 2], [0, 2, 3]],
+                           process=False).subdivide_to_size(0.25)  # normal toward -y
+    room = trimesh.util.concatenate([floor, wall])
+    # A tilted camera 3 m in front of the person, 1.5 m high, looking at the chest.
+    from prox_engine.synthetic import look_at
+    cam2world = look_at(np.array([0.8, -3.0, 1.5]), np.array([0.0, 0.0, 1.0]))
+    scene = Scene(room.vertices, room.faces, cam2world,
+                  compute_sdf(room.vertices, room.faces, dim=128, padding=0.5),
+                  sample_spacing=0.05)
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    camera = ((world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation)[None]
+    parts = [body.contact_parts[p] for p in body.contact_parts]
+    scale = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices, parts,
+                       scene, True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
+    assert abs(float(scale) - 1.0) < 0.02
