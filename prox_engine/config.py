@@ -36,6 +36,7 @@ class FitConfig:
     ignore_keypoints: list[int] = field(default_factory=lambda: [1, 9, 12])
     joint_limit_weight: float = 1e4  # every stage: anatomical limits are constraints
     init_depth_weight: float = 100.0  # start search: hold the similar-triangles depth
+    swap_sides: bool = True  # consider OpenPose exchanging left and right legs or arms
     scale_search: bool = True  # resolve depth against the scene before the scene stages
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
@@ -63,21 +64,39 @@ class FitConfig:
         return any(stage.weights.get(term, 0) > 0 for stage in self.stages)
 
 
-def load_config(name_or_path: str | Path) -> FitConfig:
-    """Load ``rgb``, ``prox``, ``smplifyd``, ``proxd`` or a YAML file path."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = CONFIG_DIR / f"{name_or_path}.yaml"
-        if not path.exists():
-            known = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
-            raise InputError(name_or_path, f"unknown configuration (known: {known})")
+def _read(path: Path, seen: set[Path]) -> dict:
+    """A configuration file's settings over those of the one it names as ``base`` (a
+    built-in name or a path relative to it), recursively."""
     try:
         raw = yaml.safe_load(path.read_text())
     except FileNotFoundError as exc:
         raise InputError(path, "configuration file not found") from exc
     except yaml.YAMLError as exc:
         raise InputError(path, f"invalid YAML ({exc})") from exc
-    if not isinstance(raw, dict) or not isinstance(raw.get("stages"), list) or not raw["stages"]:
+    if not isinstance(raw, dict):
+        raise InputError(path, "a configuration must be a mapping")
+    base = raw.pop("base", None)
+    if base is None:
+        return raw
+    parent = Path(str(base))
+    parent = (CONFIG_DIR / f"{base}.yaml" if not parent.suffix
+              else parent if parent.is_absolute() else path.parent / parent)
+    if parent.resolve() in seen | {path.resolve()}:
+        raise InputError(path, f"'base: {base}' makes a cycle")
+    return {**_read(parent, seen | {path.resolve()}), **raw}
+
+
+def load_config(name_or_path: str | Path) -> FitConfig:
+    """Load ``rgb``, ``prox``, ``smplifyd``, ``proxd`` or a YAML file path; a file may
+    name a ``base`` configuration whose settings it overrides."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = CONFIG_DIR / f"{name_or_path}.yaml"
+        if not path.exists():
+            known = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
+            raise InputError(name_or_path, f"unknown configuration (known: {known})")
+    raw = _read(path, set())
+    if not isinstance(raw.get("stages"), list) or not raw["stages"]:
         raise InputError(path, "configuration needs a non-empty 'stages' list")
     stages = []
     for i, entry in enumerate(raw.pop("stages")):

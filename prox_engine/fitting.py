@@ -15,7 +15,7 @@ from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import vertex_normals
-from .keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND, Keypoints
+from .keypoints import BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, Keypoints, side_swap
 from .initialisation import best_start
 from .scale_search import best_scale
 from .scene import Scene
@@ -40,6 +40,7 @@ class FitResult:
     seconds: float
     stage_seconds: dict[str, float] = field(default_factory=dict)
     events: list[str] = field(default_factory=list)  # numerical trouble met on the way
+    swapped: list[str] = field(default_factory=list)  # parts whose sides were relabelled
 
 
 class Fitter:
@@ -73,15 +74,19 @@ class Fitter:
         stage_seconds: dict[str, float] = {}
         if warm_start is None:
             self._announce("initialise")
-            params = self.initialise(frames)
+            params, labels = self.initialise(frames)
             stage_seconds["camera"] = time.perf_counter() - start
             stages = self.config.stages
             frozen_shape = False
         else:
             params = {k: v.detach().clone().expand(len(frames), *v.shape[1:]).contiguous()
                       for k, v in warm_start.items()}
+            labels = self._closest_labelling(target, conf, previous_keypoints)
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
+        for b, label in enumerate(labels):  # fit the keypoints as relabelled
+            order = side_swap(label)
+            target[b], conf[b] = target[b, order], conf[b, order]
         final: dict[str, torch.Tensor] = {}
         rescaled = warm_start is not None or not self.config.scale_search
         for stage in stages:
@@ -107,7 +112,7 @@ class Fitter:
             vertices=out.vertices[i].detach(), keypoints=out.keypoints[i].detach(),
             losses={k: float(v[i]) for k, v in final.items()}, seconds=elapsed,
             stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()},
-            events=list(self.events))
+            events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
 
     def _announce(self, stage: str) -> None:
@@ -235,12 +240,35 @@ class Fitter:
             v.requires_grad_(False)
 
     # ------------------------------------------------------------------ initialisation
-    def initialise(self, frames: list[Frame]) -> Params:
+    def initialise(self, frames: list[Frame]) -> tuple[Params, list[tuple[str, ...]]]:
         """The starting body of each frame (:func:`initialisation.best_start`), upright
         with respect to the scene's world up (without a scene, the camera's -y), from the
-        detector's confidences (neck and hips included, unlike the data term)."""
+        detector's confidences (neck and hips included, unlike the data term); and per
+        frame the parts whose left and right the detector most likely exchanged (with
+        ``config.swap_sides``)."""
         target, conf = self._targets(frames)
         up = self.scene.up_in_camera() if self.scene is not None else torch.tensor(
             [0.0, -1.0, 0.0])
-        return best_start(self.body, self.camera, target, conf, up, self.config.data_rho,
-                          self.config.init_depth_weight, events=self.events)
+        labellings = LABELLINGS if self.config.swap_sides else LABELLINGS[:1]
+        params, chosen = best_start(self.body, self.camera, target, conf, up,
+                                    self.config.data_rho, self.config.init_depth_weight,
+                                    [side_swap(label) for label in labellings],
+                                    events=self.events)
+        return params, [labellings[int(c)] for c in chosen]
+
+    def _closest_labelling(self, target: torch.Tensor, conf: torch.Tensor,
+                           previous: torch.Tensor | None) -> list[tuple[str, ...]]:
+        """Sequence mode: per frame the labelling whose body keypoints lie closest (robust
+        pixel distance) to the previous fit's, so that a swap does not flip the body."""
+        if not self.config.swap_sides or previous is None:
+            return [()] * len(target)
+        labellings = LABELLINGS
+        projected = self.camera.project(previous[:, BODY])  # (1 or B, 25, 2)
+        costs = []
+        for label in labellings:
+            order = side_swap(label)
+            squared = ((target[:, order][:, BODY] - projected) ** 2).sum(-1)
+            costs.append((conf[:, order][:, BODY] ** 2 * losses.gmof(
+                squared, self.config.data_rho)).sum(1))
+        best = torch.stack(costs).argmin(0)
+        return [labellings[int(b)] for b in best]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 
@@ -27,6 +28,12 @@ TORSO = [1, 2, 5, 8, 9, 12]  # neck, shoulders, mid-hip, hips: nearly rigid in a
 LIMB_WEIGHT = 0.25  # the other body keypoints guide the rigid fit less than the torso
 UPRIGHT_TURNS = 4  # upright candidates: facing the camera, then turned by 90 degrees each
 LYING_TURNS = 8  # lying candidates: head toward each of 8 horizontal directions
+# Candidates are compared by their robust reprojection error with this scale (px): a wrong
+# posture is 50-150 px off at a few metres, noise and a detector's offsets 5-20 px.
+SCORE_RHO = 50.0
+# Cost (as many px^2 of data) of the cosine between body up and world up moving by 1: a
+# candidate may lean 30 degrees for about 200 px^2, but not turn from lying to upright.
+TILT_WEIGHT = 1e4
 
 
 @dataclass
@@ -73,10 +80,18 @@ def candidates(body: BodyModel, up: torch.Tensor) -> Candidates:
 
 
 def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torch.Tensor,
-               up: torch.Tensor, rho: float, depth_weight: float, max_iter: int = 30,
-               events: list[str] | None = None) -> Params:
-    """Parameters (B frames) of the best rigidly fitted candidate per frame. ``target``
-    (B, K, 2) pixels and ``conf`` (B, K) the detector's confidences."""
+               up: torch.Tensor, rho: float, depth_weight: float,
+               labellings: Sequence[list[int]] = (), max_iter: int = 30,
+               events: list[str] | None = None) -> tuple[Params, torch.Tensor]:
+    """Parameters (B frames) of the best rigidly fitted candidate per frame, and which of
+    ``labellings`` (row orders of the keypoints, e.g. with the legs' sides exchanged; none:
+    the keypoints as given) it explains best, (B,). ``target`` (B, K, 2) pixels and
+    ``conf`` (B, K) the detector's confidences."""
+    orders = list(labellings) or [list(range(target.shape[1]))]
+    frames, views = target.shape[0], len(orders)
+    # Every frame under every labelling: (B, L) flattened to B * L "frames" below.
+    target = torch.stack([target[:, o] for o in orders], 1).flatten(0, 1)
+    conf = torch.stack([conf[:, o] for o in orders], 1).flatten(0, 1)
     batch = target.shape[0]
     cands = candidates(body, up)
     names = sorted(set(cands.postures))
@@ -102,14 +117,16 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     flat_w = fit_w.repeat_interleave(count, 0)
     centre_px = torch.einsum("nk,nkd->nd", w_c, flat_target)
     turn = torch.zeros(batch * count, 3)
+    model_up = body.up_axis()
+    tilt0 = (rot0 @ model_up) @ up  # each candidate keeps its lean: lying stays lying
     transl = torch.zeros(batch * count, 3)
 
     def rotated() -> torch.Tensor:
         return kp @ (axis_angle_to_matrix(turn) @ rot0).transpose(1, 2)
 
-    def data(points: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    def data(points: torch.Tensor, weight: torch.Tensor, scale: float = rho) -> torch.Tensor:
         squared = ((camera.project(points) - flat_target) ** 2).sum(-1)
-        return (weight * gmof(squared, rho)).sum(1)
+        return (weight * gmof(squared, scale)).sum(1)
 
     # Two rounds: a candidate may turn far from where it started (a lying posture turned
     # upright), and its similar-triangles depth follows its orientation.
@@ -129,7 +146,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
             optimizer.zero_grad()
             points = rotated() + transl[:, None]
             held = (torch.einsum("nk,nk->n", w_c, points[..., 2]) - depth) ** 2
-            loss = (data(points, flat_w) + depth_weight * held).sum()
+            tilt = (axis_angle_to_matrix(turn) @ rot0 @ model_up) @ up - tilt0
+            loss = (data(points, flat_w) + depth_weight * held + TILT_WEIGHT * tilt ** 2).sum()
             loss.backward()
             return loss
 
@@ -146,21 +164,21 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
                 events.append("initialise: non-finite values in the rigid fit, undone")
     keypoints = lambda: rotated() + transl[:, None]  # noqa: E731
     with torch.no_grad():
-        score = data(keypoints(), flat_seen ** 2).view(batch, count)
-        score = torch.nan_to_num(score, nan=math.inf)
-        best = score.argmin(1)
+        score = data(keypoints(), flat_seen ** 2, SCORE_RHO).view(batch, count)
+        score = torch.nan_to_num(score, nan=math.inf).view(frames, views * count)
+        best = score.argmin(1)  # over labellings and candidates
         rotation = axis_angle_to_matrix(turn) @ rot0
-        chosen = torch.arange(batch) * count + best
         params_by_frame = []
-        for b in range(batch):
-            n = int(chosen[b])
-            params = body.init_params(1, cands.postures[int(best[b])])
+        for b in range(frames):
+            n = b * views * count + int(best[b])  # row of (frame, labelling, candidate)
+            c = int(best[b]) % count
+            params = body.init_params(1, cands.postures[c])
             params["global_orient"] = matrix_to_axis_angle(rotation[n:n + 1])
             # The pivot turns with the root: the translation that puts it where the fit did.
-            params["transl"] = (transl[n] + pivot[int(best[b])] - body.root_pivot(params)[0]
-                                )[None]
+            params["transl"] = (transl[n] + pivot[c] - body.root_pivot(params)[0])[None]
             params_by_frame.append(params)
-    return {k: torch.cat([p[k] for p in params_by_frame]) for k in params_by_frame[0]}
+    return ({k: torch.cat([p[k] for p in params_by_frame]) for k in params_by_frame[0]},
+            best // count)
 
 
 def _centre_weights(seen: torch.Tensor, events: list[str] | None) -> torch.Tensor:

@@ -29,9 +29,29 @@ RIGHT_HAND = slice(N_BODY + N_HAND, N_BODY + 2 * N_HAND)
 FACE = slice(N_BODY + 2 * N_HAND, N_BODY + 2 * N_HAND + N_FACE)
 N_KEYPOINTS = FACE.stop  # 118, the SMPLify-X layout
 
+# Left/right pairs a detector confuses (BODY_25 rows), by part; an arm swap takes the hand.
+SIDE_PAIRS = {"legs": [(12, 9), (13, 10), (14, 11), (19, 22), (20, 23), (21, 24)],
+              "arms": [(5, 2), (6, 3), (7, 4)]}
+
 # Torso edges (shoulder-hip) for the similar-triangles depth initialisation.
 TORSO_EDGES = [(2, 9), (5, 12)]  # right shoulder - right hip, left shoulder - left hip
 SHOULDERS = (2, 5)
+
+
+def side_swap(parts: tuple[str, ...]) -> list[int]:
+    """Row order (118) that exchanges the left and right keypoints of ``parts``."""
+    order = list(range(N_KEYPOINTS))
+    for part in parts:
+        for left, right in SIDE_PAIRS[part]:
+            order[left], order[right] = right, left
+        if part == "arms":
+            hands = list(range(LEFT_HAND.start, LEFT_HAND.stop))
+            for i in hands:
+                order[i], order[i + N_HAND] = i + N_HAND, i
+    return order
+
+
+LABELLINGS = ((), ("legs",), ("arms",), ("legs", "arms"))  # as detected, then swapped
 
 
 @dataclass

@@ -121,7 +121,8 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     error = metrics.reprojection_error(result.keypoints, frame.keypoints, camera,
                                        body.keypoint_mask)
     stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
-             "seconds": result.seconds, "events": result.events}
+             "seconds": result.seconds, "events": result.events,
+             "sides_swapped": result.swapped}
     params = body.export(result.params, 0)
     params["camera"] = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                         "k": camera.k, "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],

@@ -90,7 +90,7 @@ def test_initialisation_is_upright_at_the_true_depth(body, yaw):
     scene = floor_scene(cam2world)
     _, keypoints = standing_person(body, cam2world, yaw)
     fitter = Fitter(body, CAMERA, load_config("rgb"), scene)
-    params = fitter.initialise([frame_of(keypoints)])
+    params, _ = fitter.initialise([frame_of(keypoints)])
     with torch.no_grad():
         out = body(params)
     rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
@@ -102,6 +102,21 @@ def test_initialisation_is_upright_at_the_true_depth(body, yaw):
     assert abs(float(out.keypoints[0, torso, 2].mean()) / true_depth - 1) < 0.10
 
 
+@pytest.mark.parametrize("parts", [("legs",), ("arms",), ("legs", "arms")])
+def test_initialisation_finds_swapped_sides(body, parts):
+    """Keypoints whose left and right legs or arms the detector exchanged are recognised,
+    and keypoints as they should be are left alone."""
+    from prox_engine.keypoints import side_swap
+
+    cam2world = tilted_camera()
+    _, keypoints = standing_person(body, cam2world, yaw=0.4)
+    fitter = Fitter(body, CAMERA, load_config("rgb"), floor_scene(cam2world))
+    frame = frame_of(keypoints)
+    assert fitter.initialise([frame])[1] == [()]
+    frame.keypoints.data[:] = frame.keypoints.data[side_swap(parts)]
+    assert fitter.initialise([frame])[1] == [parts]
+
+
 def test_initialisation_with_only_neck_and_hips(body):
     """Only the neck and hips seen (no shoulders): the body is still placed where they
     are, with finite parameters."""
@@ -111,7 +126,7 @@ def test_initialisation_with_only_neck_and_hips(body):
     seen = [1, 8, 9, 12, 10, 13]
     frame.keypoints.data[[i for i in range(25) if i not in seen], 2] = 0
     fitter = Fitter(body, CAMERA, load_config("rgb"), floor_scene(cam2world))
-    params = fitter.initialise([frame])
+    params, _ = fitter.initialise([frame])
     assert all(bool(torch.isfinite(v).all()) for v in params.values())
     with torch.no_grad():
         hips = CAMERA.project(body(params).keypoints[0, [9, 12]]).mean(0)
@@ -152,7 +167,7 @@ def test_stage_stops_after_the_call_that_settles(body):
             stage = Stage("global", {"body": 1.0, "pose_prior": 30.0}, optimize_shape=False)
             config = FitConfig("short", [stage], max_iter=4, max_calls=calls, ftol=1e9)
             fitter = Fitter(body, CAMERA, config)
-            params = fitter.initialise([frame])
+            params, _ = fitter.initialise([frame])
             target, conf = fitter._targets([frame])
             evaluations.clear()
             fitter._run_stage(stage, params, ["transl", "global_orient", "body_pose"], target,

@@ -104,3 +104,19 @@ def test_configs(tmp_path):
     bad = _write(tmp_path / "bad.yaml", "stages:\n  - {body: 1, wings: 2}\n")
     with pytest.raises(InputError, match="unknown terms"):
         load_config(bad)
+
+
+def test_config_inherits_from_its_base(tmp_path):
+    """A configuration names a base and overrides some of its settings; cycles are an
+    error naming the file."""
+    own = _write(tmp_path / "mine.yaml", "base: prox\nswap_sides: false\ncontact_rho: 0.1\n")
+    config, prox = load_config(own), load_config("prox")
+    assert not config.swap_sides and config.contact_rho == 0.1 and config.name == "mine"
+    assert [s.weights for s in config.stages] == [s.weights for s in prox.stages]
+    child = _write(tmp_path / "child.yaml", "base: mine.yaml\nmax_iter: 5\n")
+    assert load_config(child).max_iter == 5 and not load_config(child).swap_sides
+    loop = _write(tmp_path / "loop.yaml", "base: loop.yaml\n")
+    with pytest.raises(InputError, match="cycle"):
+        load_config(loop)
+    assert not load_config("prox-no-swaps").swap_sides
+    assert not load_config("prox-no-scale-search").scale_search
