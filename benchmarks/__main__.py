@@ -18,14 +18,14 @@ import torch
 from prox_engine.body.anny_body import AnnyBody
 from prox_engine.config import load_config
 from prox_engine.output import atomic_write_text
-from prox_engine.dataset import Recording
-from prox_engine.pipeline import fit_recording, load_scene
+from prox_engine.pipeline import fit_recording
 
-from .evaluate import aggregate, evaluate_recording
+from .evaluate import aggregate, evaluate_recording, truth_scene
 from .generate import KINDS, make_benchmark
 
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
-CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox", "prox" + SEQUENCE)
+CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
+           "prox", "prox" + SEQUENCE)
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}
 COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f"),
            ("p_v2v", "p.V2V", ".1f"), ("penetrating_share", "pen. %", "pct"),
@@ -45,7 +45,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     log(f"generated {len(recordings)} recordings in {time.perf_counter() - started:.0f} s")
     kind_of = {rec: json.loads((data / "ground_truth" / rec / "meta.json").read_text())["kind"]
                for rec in recordings}
-    scenes = {rec: load_scene(Recording(data, rec), sdf_dim) for rec in recordings}
+    scenes = {rec: truth_scene(data, rec, sdf_dim) for rec in recordings}
     rows: dict[str, list[dict]] = {c: [] for c in configs}
     for config_name in configs:
         sequence = config_name.endswith(SEQUENCE)

@@ -15,6 +15,7 @@ import trimesh
 
 from prox_engine import metrics
 from prox_engine.body.base import BodyModel
+from prox_engine.dataset import Recording, load_scene_mesh
 from prox_engine.scene import Scene
 
 
@@ -35,10 +36,20 @@ def _mean_error_mm(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(a - b, axis=1).mean() * 1000)
 
 
+def truth_scene(data: Path, recording: str, sdf_dim: int = 256) -> Scene:
+    """The recording's scan at its true registration to the camera (the generator writes
+    a slightly wrong one for the fitter, as real registrations are)."""
+    meta = json.loads((Path(data) / "ground_truth" / recording / "meta.json").read_text())
+    rec = Recording(Path(data), recording)
+    return Scene.load(*load_scene_mesh(rec.scene_path), np.asarray(meta["cam2world"]),
+                      rec.sdf_paths, dim=sdf_dim)
+
+
 def frame_metrics(fit_vertices: np.ndarray, gt_vertices: np.ndarray, body: BodyModel,
                   fit_stats: dict, gt_contact: set[str]) -> dict:
     """PJE, V2V and their Procrustes-aligned versions (mm); the fit's penetration and which
-    ground-truth contact parts it recovers, from its per-frame ``stats`` in summary.json."""
+    ground-truth contact parts it recovers, from its scene statistics ``fit_stats``
+    (:func:`prox_engine.metrics.scene_stats` in the true scene)."""
     weights = body.keypoint_weights.numpy()
     fit_joints, gt_joints = weights @ fit_vertices, weights @ gt_vertices
     return {
@@ -56,7 +67,8 @@ def frame_metrics(fit_vertices: np.ndarray, gt_vertices: np.ndarray, body: BodyM
 def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel,
                        scene: Scene) -> list[dict]:
     """Metrics of every fitted frame of ``recording`` (``fitted`` = the ``--out`` folder)
-    against the ground truth, ``scene`` being the recording's (for its contacts)."""
+    against the ground truth, ``scene`` being its :func:`truth_scene` (penetration and
+    contacts of the fit and the truth are measured in the real scene)."""
     summary = json.loads((Path(fitted) / recording / "summary.json").read_text())
     rows = []
     for frame in summary["frames"]:
@@ -65,9 +77,10 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
         gt_contact = set(metrics.contact_parts(torch.as_tensor(gt), body, scene))
         mesh = trimesh.load(Path(fitted) / recording / "meshes" / name / "000.ply",
                             process=False)
+        fit = np.asarray(mesh.vertices, dtype=np.float64)
+        stats, _ = metrics.scene_stats(torch.as_tensor(fit, dtype=torch.float32), body, scene)
         rows.append({"frame": name, "seconds": frame["seconds"],
-                     **frame_metrics(np.asarray(mesh.vertices, dtype=np.float64),
-                                     gt.astype(np.float64), body, frame, gt_contact)})
+                     **frame_metrics(fit, gt.astype(np.float64), body, stats, gt_contact)})
     return rows
 
 

@@ -1,15 +1,19 @@
 """Reproducible benchmark data: one recording per interaction kind (sitting on a chair,
-reclining on a sofa, lying on a bed, leaning on a table, reaching from a stool, walking),
-each in its own scan-like room, in the PROX layout, with ground truth beside it.
+reclining on a sofa, lying on a bed on the back or a side, leaning on a table, reaching
+from a stool, walking, standing before a wall), each in its own scan-like room, in the
+PROX layout, with ground truth beside it.
 
     python -m benchmarks.generate --out DIR --seed 0 --frames 4
 
 Everything follows from the seed (one sub-seed per kind). Furniture is built around the
-ground-truth body, so the body touches it without penetrating; scans are open surfaces
-with about 280k faces, 2 mm noise and a few holes away from the person; keypoints are
-noisy, occluded joints are weakened or dropped, and some frames hold a spurious second
-person. Ground truth (never read by the fitter): ``ground_truth/<rec>/<frame>.npz`` with
-camera-frame ``vertices`` (V, 3) and BODY_25 ``joints`` (25, 3), and ``meta.json``.
+ground-truth body so that it touches it, except that seats and mattresses are soft: the
+body sinks 2-4 cm into the scanned surface. Scans are open surfaces with about 280k faces,
+2 mm noise and a few holes away from the person, and are registered to the camera 1-3 cm
+and 0.5-1.5 degrees off. Keypoints are what a detector reports (``benchmarks.detector``):
+per-person offsets from the model's joints, left/right swaps, blur and truncation, on top
+of 2-4 px noise; occluded joints are weakened or dropped, and some frames hold a spurious
+second person. Ground truth (never read by the fitter): ``ground_truth/<rec>/<frame>.npz``
+with camera-frame ``vertices`` (V, 3) and BODY_25 ``joints`` (25, 3), and ``meta.json``.
 """
 from __future__ import annotations
 
@@ -22,11 +26,12 @@ import numpy as np
 import torch
 import trimesh
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 from trimesh.transformations import rotation_matrix
 
 from prox_engine import metrics
 from prox_engine.body.anny_body import AnnyBody
-from prox_engine.dataset import Recording, load_cam2world, load_scene_mesh
+from prox_engine.dataset import Recording, load_scene_mesh
 from prox_engine.keypoints import BODY, LEFT_HAND, N_BODY, RIGHT_HAND
 from prox_engine.output import atomic_write_text
 from prox_engine.scene import Scene
@@ -35,10 +40,11 @@ from prox_engine.synthetic import (HEIGHT, WIDTH, frame_name, look_at, open_box,
                                    openpose_person, project, transform, write_frame,
                                    write_scene)
 
+from . import detector
 from .poses import sample_phenotype, stature
 from .staging import STAGES, Staging, table
 
-KINDS = ("sit", "sofa", "bed", "table", "reach", "walk")  # the keys of staging.STAGES
+KINDS = ("sit", "sofa", "bed", "table", "reach", "walk", "wall")  # staging.STAGES
 FACES = 280_000  # target size of each scan
 
 
@@ -68,27 +74,52 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
     furniture = [m.copy().apply_transform(to_world) for m in staging.furniture]
     bounds = room_bounds(vertices, furniture, cam2world[:3, 3], rng)
     furniture += distractors(bounds, vertices, furniture, cam2world[:3, 3], kind, rng)
-    write_scene(out, scene, scan(bounds, furniture, vertices, rng), cam2world)
+    registration = misregistration(rng)
+    write_scene(out, scene, scan(bounds, furniture, vertices, rng), cam2world @ registration)
 
     to_cam = np.linalg.inv(cam_local)
     occluders = transform(trimesh.util.concatenate(furniture).triangles,
                           np.linalg.inv(cam2world))
     sigma = rng.uniform(2.0, 4.0)
+    person = detector.subject(rng)
     names, occluded = [frame_name(t) for t in range(frames)], 0
+    errors = {"legs swapped": 0, "arms swapped": 0, "blurred": 0, "truncated": 0}
     for name, kp, verts in zip(names, staging.keypoints, staging.vertices):
         kp_cam, verts_cam = transform(kp, to_cam), transform(verts, to_cam)
-        people, hidden = detections(kp_cam, verts_cam, occluders, sigma, rng)
+        cond = detector.condition(rng)
+        for part in cond.swapped:
+            errors[f"{part} swapped"] += 1
+        errors["blurred"] += cond.blurred
+        errors["truncated"] += cond.truncated
+        people, hidden = detections(detector.offset_keypoints(kp_cam, person), verts_cam,
+                                    occluders, sigma, rng, cond)
         occluded += hidden
         write_frame(out, rec, name, people, verts_cam, kp_cam[:N_BODY])
     meta = {"kind": kind, "scene": scene, "seed": seed, "phenotype": phenotype,
             "stature_m": stature(body, phenotype), "frames": names,
             "contact_parts": staging.contacts, "camera_distance_m": round(distance, 3),
-            "occluded_share": round(occluded / (N_BODY * frames), 4)}
+            "occluded_share": round(occluded / (N_BODY * frames), 4),
+            "detector_errors": errors,
+            "cam2world": cam2world.tolist(),  # the true pose; the written one is off by:
+            "misregistration": {"cm": round(100 * float(np.linalg.norm(registration[:3, 3])), 2),
+                                "deg": round(float(np.degrees(np.arccos(np.clip(
+                                    (np.trace(registration[:3, :3]) - 1) / 2, -1, 1)))), 2)}}
     atomic_write_text(out / "ground_truth" / rec / "meta.json", json.dumps(meta, indent=1))
     return rec
 
 
 # --------------------------------------------------------------------------- camera, room
+def misregistration(rng: np.random.Generator) -> np.ndarray:
+    """A camera-frame rigid error of the scan's registration: 1-3 cm in a random direction
+    and 0.5-1.5 degrees about a random axis (what the written cam2world is off by)."""
+    axis, shift = rng.normal(size=3), rng.normal(size=3)
+    error = np.eye(4)
+    error[:3, :3] = Rotation.from_rotvec(
+        axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.5, 1.5))).as_matrix()
+    error[:3, 3] = shift / np.linalg.norm(shift) * rng.uniform(0.01, 0.03)
+    return error
+
+
 def place_camera(staging: Staging, body: AnnyBody, kind: str,
                  rng: np.random.Generator) -> tuple[np.ndarray, float]:
     """A camera 2-3.5 m from the person's centre, aimed at it, seeing the whole body in
@@ -249,7 +280,8 @@ def grid(origin: list[float], u: list[float], v: list[float],
 
 # --------------------------------------------------------------------------- keypoints
 def detections(kp_cam: np.ndarray, verts_cam: np.ndarray, occluders: np.ndarray,
-               sigma: float, rng: np.random.Generator) -> tuple[list[dict], int]:
+               sigma: float, rng: np.random.Generator,
+               cond: detector.Condition | None = None) -> tuple[list[dict], int]:
     """OpenPose-like people for one frame (118-point camera-frame keypoints in, no face
     out) and the number of body joints that furniture hides.
 
@@ -277,6 +309,8 @@ def detections(kp_cam: np.ndarray, verts_cam: np.ndarray, occluders: np.ndarray,
         [np.cos(angle), np.sin(angle)], 1)
     drop |= (kp_cam[:, 2] <= 0) | (uv < 0).any(1) | (uv[:, 0] >= WIDTH) | (uv[:, 1] >= HEIGHT)
     conf[drop], uv[drop] = 0.0, 0.0
+    if cond is not None:  # swaps, blur, truncation (benchmarks.detector)
+        uv, conf = detector.apply(uv, conf, cond, rng)
     people = [openpose_person(uv, conf)]
     if rng.random() < 0.25:
         ghost = spurious_person(uv[BODY], conf[BODY], rng)
@@ -333,7 +367,7 @@ def first_hits(rays: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- checks
 def ground_truth_check(out: Path, rec: str, body: AnnyBody | None = None) -> dict:
-    """How the ground truth sits in its scan: ``penetration``, the mean share of
+    """How the ground truth sits in its scan (at the true registration): ``penetration``, the mean share of
     ``body.scene_vertices`` more than 1 cm inside it; ``contact``, the share of the
     vertices of the recording's contact parts within 2 cm of it; ``touching``, per contact
     part the number of frames in which one of its vertices is that close. Uses exact
@@ -342,7 +376,7 @@ def ground_truth_check(out: Path, rec: str, body: AnnyBody | None = None) -> dic
     recording = Recording(Path(out), rec)
     truth = Path(out) / "ground_truth" / rec
     meta = json.loads((truth / "meta.json").read_text())
-    cam2world = load_cam2world(recording.cam2world_path)
+    cam2world = np.asarray(meta["cam2world"])  # the true registration, not the written one
     frames = [torch.from_numpy(np.load(truth / f"{name}.npz")["vertices"])
               for name in meta["frames"]]
     world = transform(torch.cat(frames).numpy(), cam2world)

@@ -168,3 +168,14 @@ def walk(phase: float, swing: float) -> Pose:
         **_mirror("lowerarm01", [0.35, 0.0, 0.0]),
         "spine02": [0.05, 0.1 * s, 0.0],
     }
+
+
+def gesture(phase: float) -> Pose:
+    """Standing, talking with the hands: forearms up and moving, the head turning."""
+    s, c = float(np.sin(phase)), float(np.cos(phase))
+    return {
+        "upperarm01.L": [0.3 + 0.2 * s, 0.0, -0.9], "upperarm01.R": [0.3 - 0.2 * c, 0.0, 0.9],
+        "lowerarm01.L": [1.2 + 0.3 * c, 0.0, 0.0], "lowerarm01.R": [1.0 + 0.3 * s, 0.0, 0.0],
+        "head": [0.0, 0.3 * s, 0.0], "upperleg01.L": [0.0, 0.0, -0.05],
+        "upperleg01.R": [0.0, 0.0, 0.05],
+    }

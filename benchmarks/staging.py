@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 from trimesh.transformations import rotation_matrix
 
 from prox_engine.body.anny_body import AnnyBody
@@ -17,6 +18,7 @@ from . import poses
 from .poses import body_points, phases, posed, stature, to_floor
 
 GAP = 0.003  # furniture surfaces stand this far off the body they support
+CUSHION = (0.02, 0.04)  # soft seats and mattresses: the body sinks this far into the scan
 HANDS = ["left_hand", "right_hand"]
 FEET = ["left_foot", "right_foot"]
 LEGS = ["left_shin", "right_shin", *FEET]
@@ -39,7 +41,8 @@ def stage_sit(body: AnnyBody, phenotype: dict[str, float], frames: int,
     hip = poses.seated_hip(body, phenotype, lambda h: poses.sit(0.0, lean, h))
     verts, kps, _ = to_floor(*posed(body, [poses.sit(p, lean, hip)
                                            for p in phases(frames, rng)], phenotype))
-    seat = chair(*body_points(body, verts), width=rng.uniform(0.45, 0.55))
+    seat = chair(*body_points(body, verts), width=rng.uniform(0.45, 0.55),
+                 cushion=rng.uniform(*CUSHION))
     return Staging(verts, kps, [seat], ["gluteus", "thighs", "back", *FEET])
 
 
@@ -61,7 +64,8 @@ def stage_sofa(body: AnnyBody, phenotype: dict[str, float], frames: int,
     x = {side: side * ((side * points[low, 0]).max()
                        + (rng.uniform(0.02, 0.06) if side == near else rng.uniform(0.5, 0.9)))
          for side in (-1, 1)}
-    seat_top = points[behind & (points[:, 0] > x[-1]) & (points[:, 0] < x[1]), 2].min() - GAP
+    seat_top = (points[behind & (points[:, 0] > x[-1]) & (points[:, 0] < x[1]), 2].min() - GAP
+                + rng.uniform(*CUSHION))
     arm_width = rng.uniform(0.15, 0.25)
     outer = (x[-1] - arm_width, x[1] + arm_width)
 
@@ -88,12 +92,17 @@ def stage_sofa(body: AnnyBody, phenotype: dict[str, float], frames: int,
 
 def stage_bed(body: AnnyBody, phenotype: dict[str, float], frames: int,
               rng: np.random.Generator) -> Staging:
-    """Lying supine on a bed, knees a little bent, head raised on a pillow."""
-    knees, height = rng.uniform(0.0, 0.5), rng.uniform(0.45, 0.6)
-    arch = 0.1 * phenotype["gender"]  # so that back and buttocks both touch the mattress
+    """Lying on a bed, on the back (knees a little bent) or on either side (knees bent
+    more), head raised on a pillow, sunk 2-4 cm into the mattress."""
+    side = rng.choice([0, -1, 1])  # 0: on the back
+    knees = rng.uniform(0.0, 0.5) if side == 0 else rng.uniform(0.5, 1.1)
+    height, sink = rng.uniform(0.45, 0.6), rng.uniform(*CUSHION)
+    arch = 0.1 * phenotype["gender"] if side == 0 else 0.0
+    supine = Rotation.from_rotvec([-np.pi / 2, 0.0, 0.0])
+    orient = (Rotation.from_rotvec([0.0, side * np.pi / 2, 0.0]) * supine).as_rotvec()
     pose_list = [poses.lying(p, knees, arch) for p in phases(frames, rng)]
-    verts, kps, _ = to_floor(*posed(body, pose_list, phenotype, (-np.pi / 2, 0.0, 0.0)),
-                             lift=height + GAP)
+    verts, kps, _ = to_floor(*posed(body, pose_list, phenotype, orient),
+                             lift=height + GAP - sink)
     points, _ = body_points(body, verts)
     lo, hi = points.min(0), points.max(0)
     half = np.abs(points[:, 0]).max() + rng.uniform(0.1, 0.35)
@@ -107,7 +116,7 @@ def stage_bed(body: AnnyBody, phenotype: dict[str, float], frames: int,
     if pillow > 0.03:
         bed.append(open_box([0.6, head - start, pillow],
                             [0.0, (head + start) / 2, height + pillow / 2]))
-    return Staging(verts, kps, bed, ["back", "gluteus"])
+    return Staging(verts, kps, bed, ["back", "gluteus"] if side == 0 else ["thighs"])
 
 
 def stage_table(body: AnnyBody, phenotype: dict[str, float], frames: int,
@@ -151,8 +160,20 @@ def stage_walk(body: AnnyBody, phenotype: dict[str, float], frames: int,
     return Staging(verts - centre, kps - centre, [], FEET)
 
 
+def stage_wall(body: AnnyBody, phenotype: dict[str, float], frames: int,
+               rng: np.random.Generator) -> Staging:
+    """Standing and gesturing with the back 15-30 cm from a wall, which nothing touches:
+    the scene must not pull the person onto it."""
+    verts, kps, _ = to_floor(*posed(body, [poses.gesture(p) for p in phases(frames, rng)],
+                                    phenotype))
+    points, _ = body_points(body, verts)
+    front = points[:, 1].max() + rng.uniform(0.15, 0.3)
+    wall = open_box([3.0, 0.12, 2.6], [points[:, 0].mean(), front + 0.06, 1.3])
+    return Staging(verts, kps, [wall], FEET)
+
+
 STAGES = {"sit": stage_sit, "sofa": stage_sofa, "bed": stage_bed, "table": stage_table,
-          "reach": stage_reach, "walk": stage_walk}
+          "reach": stage_reach, "walk": stage_walk, "wall": stage_wall}
 
 
 def table_under(points: np.ndarray, touching: np.ndarray, heading: float,

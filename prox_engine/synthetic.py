@@ -84,7 +84,7 @@ def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def chair(local: np.ndarray, parts: np.ndarray, width: float = 0.5,
-          backrest: bool = True) -> trimesh.Trimesh:
+          backrest: bool = True, cushion: float = 0.0) -> trimesh.Trimesh:
     """A seat (and backrest) fitted to sitting body points ``local`` (N, 3) labelled with
     their ``parts``, in the body's frame (facing -y, left +x, centred on x = 0).
 
@@ -96,6 +96,7 @@ def chair(local: np.ndarray, parts: np.ndarray, width: float = 0.5,
     over = (np.abs(local[:, 0]) < width / 2) & (local[:, 1] > seat_front)
     seat_top = float(local[over, 2].min()) - 0.003
     back_y = float(local[over & (local[:, 2] > seat_top + 0.05), 1].max()) + 0.003
+    seat_top += cushion  # a soft seat, scanned before it was sat on: the body sinks in
     floor = float(local[:, 2].min())
     seat_depth = back_y - seat_front
     seat_h = seat_top - floor
