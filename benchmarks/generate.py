@@ -398,8 +398,7 @@ def ground_truth_check(out: Path, rec: str, body: AnnyBody | None = None) -> dic
         for part in touching:
             points = verts[body.contact_parts[part]]
             with torch.no_grad():
-                near = ((scene.closest_surface(points)[0] < metrics.CONTACT_THRESHOLD)
-                        | (scene.signed_distance(points) < 0)).numpy()
+                near = (scene.exact_signed_distance(points) < metrics.CONTACT_THRESHOLD).numpy()
             close.append(near)
             touching[part] += int(near.any())
     return {"penetration": float(np.mean(penetration)),

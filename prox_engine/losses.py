@@ -33,8 +33,10 @@ def penetration(out: BodyOutput, body: BodyModel, scene: Scene) -> torch.Tensor:
 
 def penetration_energy(points: torch.Tensor, scene: Scene) -> torch.Tensor:
     """Sum over points (B, N, 3) inside the scene of d^2 (the paper's ||d n||^2) plus |d|
-    (so that shallow penetrations still get a push), d being the signed distance."""
-    depth = torch.relu(-scene.signed_distance(points))
+    (so that shallow penetrations still get a push), d being the signed distance: exact
+    (from the triangles) within two voxels of a surface, where furniture thinner than a
+    voxel would otherwise be missed, else from the grid."""
+    depth = torch.relu(-scene.signed_distance(points, exact_band=2 * scene.sdf.voxel_size))
     return (depth ** 2 + depth).sum(-1)
 
 

@@ -1,4 +1,6 @@
-"""Per-frame statistics of a fit: penetration, contact, reprojection error."""
+"""Per-frame statistics of a fit: penetration, contact, reprojection error. Distances come
+from the scene's triangles (:meth:`Scene.exact_signed_distance`), not from its SDF grid, so
+that furniture thinner than a voxel is seen."""
 from __future__ import annotations
 
 import torch
@@ -26,7 +28,7 @@ def _penetration(d: torch.Tensor) -> dict:
 @torch.no_grad()
 def penetration_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> dict:
     """Share of body vertices more than 1 cm inside the scene, their mean and the max depth."""
-    return _penetration(scene.signed_distance(vertices[body.scene_vertices]))
+    return _penetration(scene.exact_signed_distance(vertices[body.scene_vertices]))
 
 
 @torch.no_grad()
@@ -35,9 +37,7 @@ def touching_vertices(vertices: torch.Tensor, body: BodyModel, scene: Scene
     """Per contact part, its vertices within 2 cm of the scene surface (or inside it)."""
     touching = {}
     for part, ids in body.contact_parts.items():
-        dist, _ = scene.closest_surface(vertices[ids])
-        sdf = scene.signed_distance(vertices[ids])
-        touching[part] = ids[(dist < CONTACT_THRESHOLD) | (sdf < 0)]
+        touching[part] = ids[scene.exact_signed_distance(vertices[ids]) < CONTACT_THRESHOLD]
     return touching
 
 
@@ -53,7 +53,7 @@ def scene_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene
     and :func:`contact_parts`), and the vertex ids behind them, which renders paint; each
     scene query is made once."""
     ids = torch.nonzero(body.scene_vertices).flatten()
-    d = scene.signed_distance(vertices[ids])
+    d = scene.exact_signed_distance(vertices[ids])
     touching = touching_vertices(vertices, body, scene)
     stats = {**_penetration(d), "contact_parts": [p for p, t in touching.items() if len(t)]}
     flagged = {"penetrating": ids[d < -PENETRATION_THRESHOLD].tolist(),

@@ -1,5 +1,5 @@
-"""The scanned scene as the fitter sees it: an SDF for penetration, exact surface queries
-for contact, both in the camera frame of one recording."""
+"""The scanned scene as the fitter sees it: an SDF for the penetration and contact terms,
+exact triangle queries for the statistics, both in the camera frame of one recording."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,8 +9,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from . import assets
-from .geometry import closest_point_on_triangles
-from .scene_sdf import SignedDistanceField, cached_sdf, surface_samples
+from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples,
+                        triangle_signed_distance)
 
 
 class Scene:
@@ -22,10 +22,10 @@ class Scene:
         self.faces = np.asarray(faces, dtype=np.int64)
         self.cam2world = torch.tensor(cam2world, dtype=torch.float32)
         self.sdf = sdf
-        tri = torch.tensor(self.vertices[self.faces], dtype=torch.float32)
+        tri = torch.from_numpy(self.vertices[self.faces])  # float64: exact queries
         normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        self.triangles = tri
-        self.face_normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        self._triangles64 = tri
+        self._normals64 = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
         samples, self._sample_face = surface_samples(self.vertices, self.faces, sample_spacing)
         self._tree = cKDTree(samples)
 
@@ -47,32 +47,37 @@ class Scene:
         camera-to-world rotation (its third column is the viewing axis in the world)."""
         return self.cam2world[2, :3].clone()
 
-    def signed_distance(self, points_cam: torch.Tensor) -> torch.Tensor:
-        """SDF values at camera-frame points (..., 3); negative inside the scene."""
-        return self.sdf(self.to_world(points_cam))
+    def signed_distance(self, points_cam: torch.Tensor, exact_band: float = 0.0
+                        ) -> torch.Tensor:
+        """Signed distances at camera-frame points (..., 3), negative inside the scene:
+        from the SDF grid, and, for points the grid puts within ``exact_band`` of a
+        surface, from the nearest triangles themselves (differentiable too), which resolves
+        furniture thinner than a voxel."""
+        world = self.to_world(points_cam)
+        grid = self.sdf(world)
+        if exact_band <= 0:
+            return grid
+        flat, values = world.reshape(-1, 3), grid.reshape(-1)
+        near = torch.nonzero(values.detach().abs() < exact_band).flatten()
+        if len(near) == 0:
+            return grid
+        exact, _ = triangle_signed_distance(flat[near], self._tree, self._sample_face,
+                                            self._triangles64, self._normals64, k=4)
+        return values.index_put((near,), exact.to(values.dtype)).reshape(grid.shape)
 
     def sdf_normals(self, points_cam: torch.Tensor) -> torch.Tensor:
         """Outward scene normals (world frame, no gradient) at camera-frame points."""
         return self.sdf.normals(self.to_world(points_cam))
 
-    def closest_surface(self, points_cam: torch.Tensor, k: int = 6
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Distance (N,) to the nearest scene surface point and that face's normal (N, 3),
-        the normal in world coordinates. Differentiable in the points; the candidate faces
-        (those of the k nearest surface samples) are found without gradient."""
-        world = self.to_world(points_cam)
-        # A line-search probe may produce non-finite points: query somewhere harmless; the
-        # non-finite loss then makes the optimiser reject the step.
-        query = np.nan_to_num(world.detach().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
-        _, nearest = self._tree.query(query, k=k)
-        cand = torch.from_numpy(self._sample_face[nearest])
-        tri = self.triangles[cand]
-        p = world[:, None].expand(-1, k, -1)
-        closest = closest_point_on_triangles(p, tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
-        dist = (p - closest).norm(dim=-1)
-        best = dist.argmin(dim=1, keepdim=True)
-        face = cand.gather(1, best)[:, 0]
-        return dist.gather(1, best)[:, 0], self.face_normals[face]
+    @torch.no_grad()
+    def exact_signed_distance(self, points_cam: torch.Tensor) -> torch.Tensor:
+        """Signed distances (N,) at camera-frame points from the nearest triangles
+        themselves (the SDF's own rule and sign), which resolves surfaces thinner than a
+        voxel: a 3 cm tabletop is a 3 cm slab here, nothing on a 3 cm grid."""
+        distance, _ = triangle_signed_distance(self.to_world(points_cam).double(), self._tree,
+                                               self._sample_face, self._triangles64,
+                                               self._normals64)
+        return distance.float()
 
     def world_normals(self, normals_cam: torch.Tensor) -> torch.Tensor:
         return normals_cam @ self.cam2world[:3, :3].T

@@ -139,7 +139,7 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
     foot = np.zeros((dim ** 3, 3), dtype=np.float32)
     for start in range(0, len(near), chunk):
         flat = near[start:start + chunk]
-        out[flat], foot[flat] = _exact_signed_distance(centres(flat), tree, sample_face, tri,
+        out[flat], foot[flat] = exact_signed_distance(centres(flat), tree, sample_face, tri,
                                                        normals)
 
     # Far voxels: distance to the nearest band voxel's surface point, that voxel's sign.
@@ -160,31 +160,45 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
                                torch.tensor(bmax, dtype=torch.float32))
 
 
-def _exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.ndarray,
-                           tri: torch.Tensor, normals: torch.Tensor, k: int = 6
-                           ) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance and nearest surface point of each point (the k-d tree uses as many
-    threads as torch, so PROX_THREADS bounds it).
+def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: np.ndarray,
+                             tri: torch.Tensor, normals: torch.Tensor, k: int = 6
+                             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed distance (N,) and nearest surface point (N, 3) of points (N, 3), the
+    distance differentiable in the points (the k-d tree uses as many threads as torch, so
+    PROX_THREADS bounds it).
 
-    The candidates are the faces of the k nearest surface samples. Among faces at the same
-    distance (nearest point on a shared edge or vertex) the one whose plane the point is
-    farthest from decides the sign, which is right on both convex and concave edges.
+    The candidates are the faces of the k nearest surface samples (found without gradient).
+    Among faces at the same distance (nearest point on a shared edge or vertex) the one
+    whose plane the point is farthest from decides the sign, which is right on both convex
+    and concave edges.
     """
-    _, nearest = tree.query(points, k=k, workers=torch.get_num_threads())
-    cand = torch.from_numpy(sample_face[nearest])  # N, k
-    p = torch.from_numpy(points)[:, None].expand(-1, k, -1)
+    query = np.nan_to_num(points.detach().cpu().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
+    _, nearest = tree.query(query, k=k, workers=torch.get_num_threads())
+    cand = torch.from_numpy(sample_face[nearest].reshape(len(points), k))  # N, k
+    p = points.to(tri.dtype)[:, None].expand(-1, k, -1)
     t = tri[cand]  # N, k, 3, 3
     closest = closest_point_on_triangles(p, t[:, :, 0], t[:, :, 1], t[:, :, 2])
     diff = p - closest
-    dist = diff.norm(dim=-1)
-    plane = (diff * normals[cand]).sum(-1)
-    best = dist.min(dim=1, keepdim=True).values
-    score = torch.where(dist <= best + 1e-6, plane.abs(), torch.full_like(plane, -1.0))
-    choice = score.argmax(dim=1, keepdim=True)
-    sign = torch.sign(plane.gather(1, choice)).squeeze(1)
-    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    dist = (diff.pow(2).sum(-1) + 1e-14).sqrt()  # finite gradient on the surface too
+    with torch.no_grad():
+        plane = (diff * normals[cand]).sum(-1)
+        best = dist.min(dim=1, keepdim=True).values
+        score = torch.where(dist <= best + 1e-6, plane.abs(), torch.full_like(plane, -1.0))
+        choice = score.argmax(dim=1, keepdim=True)
+        sign = torch.sign(plane.gather(1, choice)).squeeze(1)
+        sign = torch.where(sign == 0, torch.ones_like(sign), sign)
     rows = torch.arange(len(points))
-    return (best.squeeze(1) * sign).numpy(), closest[rows, choice.squeeze(1)].numpy()
+    return dist.gather(1, choice).squeeze(1) * sign, closest[rows, choice.squeeze(1)]
+
+
+def exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.ndarray,
+                          tri: torch.Tensor, normals: torch.Tensor, k: int = 6
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`triangle_signed_distance` on and to numpy arrays, without gradient."""
+    with torch.no_grad():
+        dist, closest = triangle_signed_distance(torch.from_numpy(points), tree, sample_face,
+                                                 tri, normals, k)
+    return dist.numpy(), closest.numpy()
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray,

@@ -102,15 +102,44 @@ def test_contact_pulls_near_vertex_and_ignores_far_one():
     assert contact_energy(near.detach(), up, scene, 0.05, 45, 0.15).item() == 0
 
 
-def test_contact_uses_surface_not_vertices():
-    """Point-to-surface distance: a point over the middle of a large triangle is close."""
+def test_exact_distance_uses_surface_not_vertices():
+    """Point-to-surface distance: a point over the middle of a large triangle is close,
+    on the side its normal points to positive, below it negative."""
     vertices = np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [0.0, 2.0, 0.0]])
     faces = np.array([[0, 1, 2]])
     sdf = compute_sdf(vertices, faces, dim=32, padding=0.5)
     scene = Scene(vertices, faces, np.eye(4), sdf, sample_spacing=0.5)
-    dist, normal = scene.closest_surface(torch.tensor([[0.1, 0.0, 0.02]]))
-    assert abs(dist.item() - 0.02) < 1e-5
-    assert torch.allclose(normal, torch.tensor([[0.0, 0.0, 1.0]]))
+    d = scene.exact_signed_distance(torch.tensor([[0.1, 0.0, 0.02], [0.1, 0.0, -0.02]]))
+    assert torch.allclose(d, torch.tensor([0.02, -0.02]), atol=1e-5)
+
+
+def test_statistics_see_a_thin_tabletop(body):
+    """A body whose thighs pass through a 3 cm tabletop in a 6 m room: the SDF grid (5 cm
+    voxels) barely sees it, the statistics do."""
+    from prox_engine import metrics
+
+    room = trimesh.creation.box([6.0, 6.0, 3.0])
+    room.vertices += [0.0, 0.0, 1.5]
+    room.invert()
+    top = trimesh.creation.box([1.2, 0.7, 0.03])
+    with torch.no_grad():
+        verts = body(body.init_params(1)).vertices[0]
+    verts = verts - torch.tensor([0.0, 0.0, float(verts[:, 2].min())])
+    thighs = verts[body.contact_parts["thighs"]]
+    top.vertices += [0.0, float(thighs[:, 1].mean()), float(thighs[:, 2].mean())]
+    scene_mesh = trimesh.util.concatenate([room.subdivide_to_size(0.5), top])
+    sdf = compute_sdf(scene_mesh.vertices, scene_mesh.faces, dim=128, padding=0.2)
+    scene = Scene(scene_mesh.vertices, scene_mesh.faces, np.eye(4), sdf, sample_spacing=0.02)
+    inside = (torch.tensor(np.abs(top.vertices - top.centroid).max(0)) + 1e-3
+              >= (verts - torch.tensor(top.centroid, dtype=torch.float32)).abs()).all(1)
+    inside &= body.scene_vertices
+    grid = scene.signed_distance(verts[inside])
+    exact = scene.exact_signed_distance(verts[inside])
+    assert inside.sum() > 20
+    assert float((exact < -metrics.PENETRATION_THRESHOLD).float().mean()) > 0.3
+    assert float((grid < -metrics.PENETRATION_THRESHOLD).float().mean()) < 0.1
+    stats = metrics.penetration_stats(verts, body, scene)
+    assert stats["penetrating_share"] * int(body.scene_vertices.sum()) >= 0.3 * int(inside.sum())
 
 
 def test_projection_matches_hand_computed_point():
