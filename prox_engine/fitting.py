@@ -75,7 +75,7 @@ class Fitter:
         if warm_start is None:
             self._announce("initialise")
             params, labels = self.initialise(frames)
-            stage_seconds["camera"] = time.perf_counter() - start
+            stage_seconds["initialise"] = time.perf_counter() - start
             stages = self.config.stages
             frozen_shape = False
         else:

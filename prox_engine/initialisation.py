@@ -128,8 +128,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         squared = ((camera.project(points) - flat_target) ** 2).sum(-1)
         return (weight * gmof(squared, scale)).sum(1)
 
-    # Two rounds: a candidate may turn far from where it started (a lying posture turned
-    # upright), and its similar-triangles depth follows its orientation.
+    # Two rounds: a candidate turns about world up (and leans a little) in the first, and
+    # its similar-triangles depth follows its new orientation in the second.
     for _ in range(2):
         with torch.no_grad():
             posed = rotated()
@@ -162,9 +162,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
             turn, transl = backup
             if events is not None:
                 events.append("initialise: non-finite values in the rigid fit, undone")
-    keypoints = lambda: rotated() + transl[:, None]  # noqa: E731
     with torch.no_grad():
-        score = data(keypoints(), flat_seen ** 2, SCORE_RHO).view(batch, count)
+        score = data(rotated() + transl[:, None], flat_seen ** 2, SCORE_RHO).view(batch, count)
         score = torch.nan_to_num(score, nan=math.inf).view(frames, views * count)
         best = score.argmin(1)  # over labellings and candidates
         rotation = axis_angle_to_matrix(turn) @ rot0
@@ -174,8 +173,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
             c = int(best[b]) % count
             params = body.init_params(1, cands.postures[c])
             params["global_orient"] = matrix_to_axis_angle(rotation[n:n + 1])
-            # The pivot turns with the root: the translation that puts it where the fit did.
-            params["transl"] = (transl[n] + pivot[c] - body.root_pivot(params)[0])[None]
+            # The body puts its rest keypoints at R (k - pivot) + pivot + transl.
+            params["transl"] = (transl[n] - pivot[c])[None]
             params_by_frame.append(params)
     return ({k: torch.cat([p[k] for p in params_by_frame]) for k in params_by_frame[0]},
             best // count)

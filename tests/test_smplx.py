@@ -78,6 +78,50 @@ def test_skinning_matches_a_plain_reference(smplx, model_dir):
         assert np.abs(out.vertices[b].numpy() - expected).max() < 1e-4
 
 
+@pytest.mark.parametrize("which", ["smplx", "anny"])
+def test_root_turns_the_body_about_its_pivot(smplx, body, which):
+    """Body keypoints are R (k - pivot) + pivot + transl of the unturned, untranslated
+    ones, which the start search relies on, for each posture it starts from."""
+    from prox_engine.geometry import axis_angle_to_matrix
+
+    model = smplx if which == "smplx" else body
+    for posture in model.postures:
+        params = model.init_params(1, posture)
+        with torch.no_grad():
+            rest = model(params).keypoints[0, :25]
+            pivot = model.root_pivot(params)[0]
+            params["global_orient"][0] = torch.tensor([0.4, -1.1, 0.7])
+            params["transl"][0] = torch.tensor([0.3, -0.2, 2.5])
+            turned = model(params).keypoints[0, :25]
+        rotation = axis_angle_to_matrix(params["global_orient"])[0]
+        expected = (rest - pivot) @ rotation.T + pivot + params["transl"][0]
+        assert torch.allclose(turned, expected, atol=1e-4), posture
+
+
+def test_start_search_places_smplx_on_its_keypoints(smplx):
+    """The start search puts an SMPL-X body (whose root turns about its pelvis joint, not
+    the origin) where its keypoints are."""
+    from prox_engine.camera import Camera
+    from prox_engine.config import load_config
+    from prox_engine.fitting import Fitter, Frame
+    from prox_engine.keypoints import N_KEYPOINTS, Keypoints
+
+    camera = Camera(1000.0, 1000.0, 960.0, 540.0)
+    params = smplx.init_params(1)
+    params["global_orient"][0] = torch.tensor([3.0, 0.3, 0.0])  # upright before a camera
+    params["transl"][0] = torch.tensor([0.2, 0.1, 3.0])
+    with torch.no_grad():
+        truth = smplx(params).keypoints[0, :25]
+    data = np.zeros((N_KEYPOINTS, 3))
+    data[:25, :2], data[:25, 2] = camera.project(truth).numpy(), 0.9
+    fitter = Fitter(smplx, camera, load_config("rgb"))
+    start, _ = fitter.initialise([Frame("f", Keypoints(data, False, False))])
+    with torch.no_grad():
+        placed = smplx(start).keypoints[0, :25]
+    torso = [2, 5, 9, 12]
+    assert float((placed[torso] - truth[torso]).norm(dim=-1).mean()) < 0.1
+
+
 def test_rest_pose_and_keypoint_mapping(model_dir):
     data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
     smplx = SMPLXBody.load(model_dir, "neutral", hand_pca=0)  # PCA hands rest at their mean
