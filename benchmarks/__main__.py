@@ -30,7 +30,8 @@ SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 1
 COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f"),
            ("p_v2v", "p.V2V", ".1f"), ("penetrating_share", "pen. %", "pct"),
            ("penetration_mean_depth_m", "pen. depth cm", "cm"),
-           ("contact_recovered", "contact %", "pct"), ("seconds", "s/frame", ".2f")]
+           ("contact_recovered", "contact %", "pct"), ("sides_right", "sides %", "pct"),
+           ("seconds", "s/frame", ".2f")]
 
 
 def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
@@ -93,7 +94,8 @@ def markdown(result: dict) -> str:
     text = (f"Seed {s['seed']}, {s['frames']} frames per recording, SDF {s['sdf_dim']}^3, "
             f"{s['threads']} thread, peak memory {s['peak_memory_mb']:.0f} MB. "
             "Errors in mm; pen. % = share of vertices more than 1 cm inside the scene; "
-            "contact % = ground-truth contact parts recovered.\n\n### All scenes\n\n")
+            "contact % = ground-truth contact parts recovered; sides % = frames fitted with "
+            "the right left/right labelling.\n\n### All scenes\n\n")
     text += table(result["overall"])
     for kind, metrics in result["per_kind"].items():
         text += f"\n### {kind}\n\n" + table(metrics)

@@ -70,6 +70,7 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
     against the ground truth, ``scene`` being its :func:`truth_scene` (penetration and
     contacts of the fit and the truth are measured in the real scene)."""
     summary = json.loads((Path(fitted) / recording / "summary.json").read_text())
+    truth = json.loads((Path(data) / "ground_truth" / recording / "meta.json").read_text())
     rows = []
     for frame in summary["frames"]:
         name = frame["frame"]
@@ -79,13 +80,16 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
                             process=False)
         fit = np.asarray(mesh.vertices, dtype=np.float64)
         stats, _ = metrics.scene_stats(torch.as_tensor(fit, dtype=torch.float32), body, scene)
+        swapped = truth.get("frame_errors", {}).get(name, {}).get("swapped", [])
         rows.append({"frame": name, "seconds": frame["seconds"],
+                     "sides_right": set(frame.get("sides_swapped", [])) == set(swapped),
                      **frame_metrics(fit, gt.astype(np.float64), body, stats, gt_contact)})
     return rows
 
 
 def aggregate(rows: list[dict]) -> dict:
-    """Means over frames; contact = share of ground-truth contact parts recovered."""
+    """Means over frames; contact = share of ground-truth contact parts recovered; sides =
+    share of frames fitted with the left/right labelling the detector's truth had."""
     if not rows:
         return {}
     mean = lambda key: float(np.mean([r[key] for r in rows]))  # noqa: E731
@@ -95,4 +99,5 @@ def aggregate(rows: list[dict]) -> dict:
         **{k: mean(k) for k in ("pje", "v2v", "p_pje", "p_v2v", "penetrating_share",
                                 "penetration_mean_depth_m", "seconds")},
         "contact_recovered": sum(r["contacts_recovered"] for r in rows) / gt if gt else None,
+        "sides_right": mean("sides_right"),  # frames whose left/right labelling the fit got
     }

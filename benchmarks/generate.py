@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Sequence
 
@@ -84,6 +85,7 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
     person = detector.subject(rng)
     names, occluded = [frame_name(t) for t in range(frames)], 0
     errors = {"legs swapped": 0, "arms swapped": 0, "blurred": 0, "truncated": 0}
+    per_frame = {}
     for name, kp, verts in zip(names, staging.keypoints, staging.vertices):
         kp_cam, verts_cam = transform(kp, to_cam), transform(verts, to_cam)
         cond = detector.condition(rng)
@@ -91,6 +93,7 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
             errors[f"{part} swapped"] += 1
         errors["blurred"] += cond.blurred
         errors["truncated"] += cond.truncated
+        per_frame[name] = asdict(cond)
         people, hidden = detections(detector.offset_keypoints(kp_cam, person), verts_cam,
                                     occluders, sigma, rng, cond)
         occluded += hidden
@@ -99,7 +102,7 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
             "stature_m": stature(body, phenotype), "frames": names,
             "contact_parts": staging.contacts, "camera_distance_m": round(distance, 3),
             "occluded_share": round(occluded / (N_BODY * frames), 4),
-            "detector_errors": errors,
+            "detector_errors": errors, "frame_errors": per_frame,
             "cam2world": cam2world.tolist(),  # the true pose; the written one is off by:
             "misregistration": {"cm": round(100 * float(np.linalg.norm(registration[:3, 3])), 2),
                                 "deg": round(float(np.degrees(np.arccos(np.clip(
