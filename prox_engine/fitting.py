@@ -1,4 +1,4 @@
-"""The annealed PROX optimisation: initialisation, camera stage, weighted stages (L-BFGS
+"""The annealed PROX optimisation: start search (initialisation.py), weighted stages (L-BFGS
 with strong Wolfe line search), for a batch of frames or warm-started from a previous fit."""
 from __future__ import annotations
 
