@@ -168,16 +168,22 @@ class Fitter:
         def objective() -> dict[str, torch.Tensor]:
             return self._terms(stage, self.body(params), params, target, conf, depth, previous)
 
+        accepted: dict[str, torch.Tensor] = {}  # terms after the last kept call
+
         def settled(before: float) -> bool:
             with torch.no_grad():
-                after = float(sum(t.sum() for t in objective().values()))
+                accepted.clear()
+                accepted.update(objective())
+            after = float(sum(t.sum() for t in accepted.values()))
             return abs(before - after) <= self.config.ftol * max(1.0, abs(after))
 
         self._minimise([params[n] for n in free],
                        lambda: sum(t.sum() for t in objective().values()), stage.name,
                        stage.max_iter, stage.max_calls or self.config.max_calls, settled)
-        with torch.no_grad():
-            return objective()
+        if not accepted:  # the first call was undone: nothing evaluated where we are
+            with torch.no_grad():
+                accepted.update(objective())
+        return accepted
 
     # ------------------------------------------------------------------ scene-aware depth
     @staticmethod
