@@ -38,6 +38,7 @@ class FitConfig:
     init_depth_weight: float = 100.0  # start search: hold the similar-triangles depth
     swap_sides: bool = True  # consider OpenPose exchanging left and right legs or arms
     scale_search: bool = True  # resolve depth against the scene before the scene stages
+    scale_support: bool = True  # the scale search asks that the body rest on a surface
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

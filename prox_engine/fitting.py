@@ -199,7 +199,8 @@ class Fitter:
             normals = vertex_normals(out.vertices, body.faces)
         scale = best_scale(out.vertices, normals, body.scene_vertices, self.contact_part_ids,
                            self.scene, cfg.uses("contact"), cfg.uses("penetration"),
-                           cfg.contact_rho, cfg.contact_max_angle, cfg.contact_max_distance)
+                           cfg.contact_rho, cfg.contact_max_angle, cfg.contact_max_distance,
+                           cfg.scale_support)
         if bool(((scale - 1).abs() < 0.01).all()):
             return
         goal = out.vertices * scale[:, None, None]

@@ -3,7 +3,14 @@ taller person farther away projects to the same pixels), which is why monocular 
 off by tens of centimetres in depth. Scaling a fitted body about the camera keeps its
 reprojection exactly, so the scale can be searched globally, scoring each candidate by how
 well the body touches the scene without entering it. Gradient descent on the PROX terms
-alone only sees the scene near the body's current depth and stalls in furniture."""
+alone only sees the scene near the body's current depth and stalls in furniture.
+
+Besides contact and penetration, a body must be supported: something under it (feet on
+the floor, buttocks on a seat, a back on a mattress) rests on an upward-facing surface.
+Scaling about a camera above that surface lifts the body off it (smaller) or sinks it in
+(larger), so support and penetration bracket the scale from both sides, whereas a single
+contact part may touch some other surface at a wrong scale (a sole against a table leg,
+the thighs against a table's front edge)."""
 from __future__ import annotations
 
 import math
@@ -21,16 +28,20 @@ SCALE_SIGMA = 0.06  # spread of adult body size around the fitted (prior-mean) s
 # when that brings every contact part onto a surface, but not by 6-12 % only to touch a
 # wall behind it with the back.
 PRIOR_WEIGHT = 0.1
+SUPPORT_WEIGHT = 1.0  # an unsupported body costs as much as missing every contact part
+DOWNWARD = -0.5  # body vertices whose world normal points this far down can rest on a surface
+UPWARD = 0.7  # scene surfaces whose normal points this far up can carry a body
 
 
 @torch.no_grad()
 def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
                contact_parts: list[torch.Tensor], scene: Scene, use_contact: bool,
                use_penetration: bool, rho: float, max_angle_deg: float,
-               max_distance: float) -> torch.Tensor:
+               max_distance: float, use_support: bool = True) -> torch.Tensor:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
-    vertices inside it plus a weak prior on body size. ``vertices`` and ``normals``
+    vertices inside it plus, with ``use_support``, how far the body's underside is from
+    resting on an upward-facing surface, plus a weak prior on body size. ``vertices`` and ``normals``
     (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool, ``contact_parts``
     vertex indices per part. Returns (B,) scales."""
     scales = SCALES[:, None, None]
@@ -49,5 +60,23 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 robust = gmof(dist ** 2, rho) / rho ** 2
                 misses.append(torch.where(near, robust, torch.ones_like(robust)).min(1).values)
             cost = cost + torch.stack(misses).mean(0)
+        if use_support:
+            cost = cost + SUPPORT_WEIGHT * _unsupported(scales * vertices[b, scene_vertices],
+                                                        normals[b, scene_vertices], scene, rho)
         best.append(SCALES[int(cost.argmin())])
     return torch.stack(best)
+
+
+def _unsupported(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
+                 rho: float) -> torch.Tensor:
+    """(S,) robust gap (0: resting, 1: far) between the downward-facing body vertices of
+    each scaled copy of a body, ``points`` (S, N, 3) camera frame with outward
+    ``normals`` (N, 3), and the upward-facing scene surfaces nearest to them."""
+    down = scene.world_normals(normals)[:, 2] < DOWNWARD
+    under = points[:, down]
+    if under.shape[1] == 0:
+        return points.new_ones(points.shape[0])
+    gap = scene.signed_distance(under).abs()
+    carries = scene.sdf_normals(under)[..., 2] > UPWARD
+    robust = gmof(gap ** 2, rho) / rho ** 2
+    return torch.where(carries, robust, torch.ones_like(robust)).min(1).values

@@ -213,3 +213,30 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     scale = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices, parts,
                        scene, True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) - 1.0) < 0.02
+
+
+def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
+    """A tall person leaning on a table, fitted at the mean adult size (17 % too small, so
+    too close and floating): a sole against a table leg or the thighs against the table's
+    edge must not hold the body there; the search finds the scale at which the feet rest
+    on the floor and the hands on the table."""
+    import json
+
+    from benchmarks.generate import make_benchmark
+    from prox_engine.dataset import Recording, load_cam2world, load_scene_mesh
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.scale_search import best_scale
+
+    rec = make_benchmark(tmp_path, seed=0, frames=1, kinds=["table"], body=body)[0]
+    recording = Recording(tmp_path, rec)
+    vertices, faces = load_scene_mesh(recording.scene_path)
+    # As the fitter sees it: the scan at its written (1-3 cm misregistered) pose.
+    scene = Scene(vertices, faces, load_cam2world(recording.cam2world_path),
+                  compute_sdf(vertices, faces, dim=128, padding=0.5))
+    meta = json.loads((tmp_path / "ground_truth" / rec / "meta.json").read_text())
+    truth = np.load(tmp_path / "ground_truth" / rec / f"{meta['frames'][0]}.npz")["vertices"]
+    too_close = torch.tensor(truth, dtype=torch.float32)[None] / 1.17
+    scale = best_scale(too_close, vertex_normals(too_close, body.faces), body.scene_vertices,
+                       list(body.contact_parts.values()), scene, True, True, rho=0.05,
+                       max_angle_deg=45, max_distance=0.15)
+    assert abs(float(scale) / 1.17 - 1.0) < 0.03
