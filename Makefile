@@ -40,7 +40,7 @@ serve: setup
 test: setup
 	$(BIN)/python -m pytest -q tests
 
-# The full benchmark (7 configurations x 7 kinds x 6 frames, about 50 minutes in one
+# The full benchmark (8 configurations x 7 kinds x 6 frames, about an hour in one
 # process; not part of the tests).
 bench: setup
 	$(BIN)/python -m benchmarks --seed 1 --frames 6 --out bench_output
