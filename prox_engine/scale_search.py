@@ -42,8 +42,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices inside it plus, with ``use_support``, how far the body's underside is from
     resting on an upward-facing surface, plus a weak prior on body size. ``vertices``
-    and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool, ``contact_parts``
-    vertex indices per part. Returns (B,) scales."""
+    and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
+    ``contact_parts`` vertex indices per part. Returns (B,) scales."""
     scales = SCALES[:, None, None]
     best = []
     for b in range(vertices.shape[0]):
