@@ -48,8 +48,10 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     best = []
     for b in range(vertices.shape[0]):
         cost = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
+        scaled = scales * vertices[b, scene_vertices]  # (S, N, 3)
+        signed = scene.signed_distance(scaled) if use_penetration or use_support else None
         if use_penetration:
-            depth = torch.relu(-scene.signed_distance(scales * vertices[b, scene_vertices]))
+            depth = torch.relu(-signed)
             cost = cost + PENETRATION_WEIGHT * (depth / PENETRATION_SCALE).clamp(max=1.0).mean(1)
         if use_contact and contact_parts:
             misses = []
@@ -61,22 +63,23 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 misses.append(torch.where(near, robust, torch.ones_like(robust)).min(1).values)
             cost = cost + torch.stack(misses).mean(0)
         if use_support:
-            cost = cost + SUPPORT_WEIGHT * _unsupported(scales * vertices[b, scene_vertices],
+            cost = cost + SUPPORT_WEIGHT * _unsupported(scaled, signed,
                                                         normals[b, scene_vertices], scene, rho)
         best.append(SCALES[int(cost.argmin())])
     return torch.stack(best)
 
 
-def _unsupported(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
-                 rho: float) -> torch.Tensor:
+def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tensor,
+                 scene: Scene, rho: float) -> torch.Tensor:
     """(S,) robust gap (0: resting, 1: far) between the downward-facing body vertices of
-    each scaled copy of a body, ``points`` (S, N, 3) camera frame with outward
-    ``normals`` (N, 3), and the upward-facing scene surfaces nearest to them."""
+    each scaled copy of a body, ``points`` (S, N, 3) camera frame with their signed
+    distances ``signed`` (S, N) and outward ``normals`` (N, 3), and the upward-facing
+    scene surfaces nearest to them."""
     down = scene.world_normals(normals)[:, 2] < DOWNWARD
     under = points[:, down]
     if under.shape[1] == 0:
         return points.new_ones(points.shape[0])
-    gap = scene.signed_distance(under).abs()
+    gap = signed[:, down].abs()
     carries = scene.sdf_normals(under)[..., 2] > UPWARD
     robust = gmof(gap ** 2, rho) / rho ** 2
     return torch.where(carries, robust, torch.ones_like(robust)).min(1).values
