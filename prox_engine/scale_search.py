@@ -59,8 +59,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 points = scales * vertices[b, ids]
                 dist, near = contact_distances(points, normals[b, ids].expand_as(points), scene,
                                                max_angle_deg, max_distance)
-                robust = gmof(dist ** 2, rho) / rho ** 2
-                misses.append(torch.where(near, robust, torch.ones_like(robust)).min(1).values)
+                misses.append(_miss(dist, near, rho))
             cost = cost + torch.stack(misses).mean(0)
         if use_support:
             cost = cost + SUPPORT_WEIGHT * _unsupported(scaled, signed,
@@ -79,7 +78,12 @@ def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tens
     under = points[:, down]
     if under.shape[1] == 0:
         return points.new_ones(points.shape[0])
-    gap = signed[:, down].abs()
     carries = scene.sdf_normals(under)[..., 2] > UPWARD
-    robust = gmof(gap ** 2, rho) / rho ** 2
-    return torch.where(carries, robust, torch.ones_like(robust)).min(1).values
+    return _miss(signed[:, down].abs(), carries, rho)
+
+
+def _miss(distance: torch.Tensor, valid: torch.Tensor, rho: float) -> torch.Tensor:
+    """(S,) how far the best of the ``valid`` points (S, N) at ``distance`` is from
+    touching: the robust distance (0 touching, toward 1 far away), 1 when none is valid."""
+    robust = gmof(distance ** 2, rho) / rho ** 2
+    return torch.where(valid, robust, torch.ones_like(robust)).min(1).values
