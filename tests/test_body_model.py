@@ -51,3 +51,22 @@ def test_self_penetration_detects_arm_in_torso(body):
     params["body_pose"][0, BODY_BONES.index("upperarm01.L"), 2] = -1.4  # arm into the chest
     params["body_pose"][0, BODY_BONES.index("upperarm01.L"), 0] = 0.6
     assert self_penetration(body(params), body).item() > 0
+
+
+def test_shape_prior_is_annys_age_conditioned_beta_likelihood(body):
+    """The one-table shape prior equals anny's own sixteen Beta distributions, values and
+    gradients, across genders and ages (including ages between and beyond their anchors)."""
+    torch.manual_seed(0)
+    shape = (torch.randn(32, 6) * 1.5).requires_grad_(True)
+    p = torch.sigmoid(shape).clamp(1e-3, 1 - 1e-3)
+    gender, age = p[:, 0], p[:, 1]
+    expected = ((age - body.prior_age) / 0.05) ** 2 / 2
+    for column, name in ((4, "height"), (3, "weight"), (2, "muscle"), (5, "proportions")):
+        for who, share in (("boys", 1 - gender), ("girls", gender)):
+            dist = getattr(body.shape_distribution, f"{who}_conditional_{name}_distribution")
+            expected = expected - share * dist.get_torch_distribution(age).log_prob(p[:, column])
+    ours = body.shape_prior({"shape": shape})
+    torch.testing.assert_close(ours, expected.float(), rtol=1e-4, atol=1e-4)
+    grad_ours, = torch.autograd.grad(ours.sum(), shape)
+    grad_expected, = torch.autograd.grad(expected.sum(), shape)
+    torch.testing.assert_close(grad_ours, grad_expected.float(), rtol=1e-3, atol=1e-3)
