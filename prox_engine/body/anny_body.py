@@ -11,6 +11,7 @@ Parameters (all leaf tensors, batch first):
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -151,7 +152,13 @@ class AnnyBody(BodyModel):
             raise FileNotFoundError(f"{path}: anny model data missing; run 'prox setup' first")
         assets.configure_warp()
         import anny
+        import anny.skinning.warp_skinning as skinning
         from anny.models.model_data import ModelData
+
+        # anny re-decorates its skinning kernel on every call (~2 ms, a sixth of a body
+        # evaluation); the kernel depends only on hashable dtypes and counts.
+        if not hasattr(skinning.get_kernel, "cache_info"):
+            skinning.get_kernel = functools.lru_cache(maxsize=None)(skinning.get_kernel)
 
         model = anny.Anny.from_model_data(
             ModelData.load_safetensors(str(path)), pose_parameterization="local-bone",
