@@ -43,7 +43,8 @@ def penetration_energy(points: torch.Tensor, scene: Scene) -> torch.Tensor:
 def contact(out: BodyOutput, body: BodyModel, scene: Scene, vertex_ids: torch.Tensor,
             rho: float, max_angle_deg: float, max_distance: float) -> torch.Tensor:
     """Contact energy of the body's contact vertices, (B,)."""
-    normals = vertex_normals(out.vertices, body.faces)[:, vertex_ids]
+    with torch.no_grad():  # the normals only choose which vertices qualify
+        normals = vertex_normals(out.vertices, body.faces)[:, vertex_ids]
     return contact_energy(out.vertices[:, vertex_ids], normals, scene, rho, max_angle_deg,
                           max_distance)
 
