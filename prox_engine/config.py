@@ -39,6 +39,11 @@ class FitConfig:
     swap_sides: bool = True  # consider OpenPose exchanging left and right legs or arms
     scale_search: bool = True  # resolve depth against the scene before the scene stages
     scale_support: bool = True  # the scale search asks that the body rest on a surface
+    # Distinct starting bodies per frame fitted side by side through the first
+    # start_stages stages, after which each frame keeps the one with the lowest objective:
+    # a posture or orientation the rigid start search ranks second often fits better.
+    start_candidates: int = 2
+    start_stages: int = 2
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

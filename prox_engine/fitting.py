@@ -84,12 +84,16 @@ class Fitter:
             labels = self._closest_labelling(target, conf, previous_keypoints)
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
+        keep = len(labels) // len(frames)  # starts per frame, fitted side by side
+        if keep > 1:
+            target, conf = target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0)
+            depth = [d for d in depth for _ in range(keep)]
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
             target[b], conf[b] = target[b, order], conf[b, order]
         final: dict[str, torch.Tensor] = {}
         rescaled = warm_start is not None or not self.config.scale_search
-        for stage in stages:
+        for index, stage in enumerate(stages):
             self._announce(stage.name)
             t0 = time.perf_counter()
             if not rescaled and self._scene_stage(stage):
@@ -102,6 +106,13 @@ class Fitter:
                 free.append("hand_pose")
             final = self._run_stage(stage, params, free, target, conf, depth,
                                     previous_keypoints)
+            if keep > 1 and index + 1 == self.config.start_stages:
+                rows = self._best_starts(final, keep)
+                params = {k: v[rows].contiguous() for k, v in params.items()}
+                target, conf = target[rows], conf[rows]
+                final = {k: v[rows] for k, v in final.items()}
+                depth, labels = [depth[r] for r in rows], [labels[r] for r in rows]
+                keep = 1
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
         with torch.no_grad():
@@ -114,6 +125,13 @@ class Fitter:
             stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()},
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
+
+    @staticmethod
+    def _best_starts(terms: dict[str, torch.Tensor], keep: int) -> list[int]:
+        """Rows (one per frame) of the starts, ``keep`` per frame, whose objective is
+        lowest after the stages they were fitted through."""
+        total = sum(terms.values()).view(-1, keep)
+        return (torch.arange(len(total)) * keep + total.argmin(1)).tolist()
 
     def _announce(self, stage: str) -> None:
         if self.on_stage is not None:
@@ -260,7 +278,7 @@ class Fitter:
         params, chosen = best_start(self.body, self.camera, target, conf, up,
                                     self.config.data_rho, self.config.init_depth_weight,
                                     [side_swap(label) for label in labellings],
-                                    events=self.events)
+                                    events=self.events, keep=self.config.start_candidates)
         return params, [labellings[int(c)] for c in chosen]
 
     def _closest_labelling(self, target: torch.Tensor, conf: torch.Tensor,

@@ -37,6 +37,7 @@ SWAP_COST = 500.0  # on the tuning seed: 41 of 42 frames labelled right, no fals
 # Cost (as many px^2 of data) of the cosine between body up and world up moving by 1: a
 # candidate may lean 30 degrees for about 200 px^2, but not turn from lying to upright.
 TILT_WEIGHT = 1e4
+DISTINCT_TURN = math.radians(45)  # starts kept side by side differ at least this much
 
 
 @dataclass
@@ -85,11 +86,13 @@ def candidates(body: BodyModel, up: torch.Tensor) -> Candidates:
 def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torch.Tensor,
                up: torch.Tensor, rho: float, depth_weight: float,
                labellings: Sequence[list[int]] = (), max_iter: int = 30,
-               events: list[str] | None = None) -> tuple[Params, torch.Tensor]:
-    """Parameters (B frames) of the best rigidly fitted candidate per frame, and which of
+               events: list[str] | None = None, keep: int = 1
+               ) -> tuple[Params, torch.Tensor]:
+    """Parameters of the ``keep`` best distinct rigidly fitted candidates of each frame
+    (B * keep rows, frame-major, best first; see :func:`_distinct`), and which of
     ``labellings`` (row orders of the keypoints, e.g. with the legs' sides exchanged; none:
-    the keypoints as given) it explains best, (B,). ``target`` (B, K, 2) pixels and
-    ``conf`` (B, K) the detector's confidences."""
+    the keypoints as given) each explains the keypoints under, (B * keep,). ``target``
+    (B, K, 2) pixels and ``conf`` (B, K) the detector's confidences."""
     orders = list(labellings) or [list(range(target.shape[1]))]
     frames, views = target.shape[0], len(orders)
     # Every frame under every labelling: (B, L) flattened to B * L "frames" below.
@@ -169,20 +172,49 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         score = data(rotated() + transl[:, None], flat_seen ** 2, SCORE_RHO).view(batch, count)
         score = torch.nan_to_num(score, nan=math.inf).view(frames, views, count)
         score[:, 1:] += SWAP_COST  # a detector swaps sides in a minority of frames
-        score = score.flatten(1)
-        best = score.argmin(1)  # over labellings and candidates
+        score = score.flatten(1)  # over labellings and candidates
         rotation = axis_angle_to_matrix(turn) @ rot0
-        params_by_frame = []
+        chosen, starts = [], []
         for b in range(frames):
-            n = b * views * count + int(best[b])  # row of (frame, labelling, candidate)
-            c = int(best[b]) % count
-            params = body.init_params(1, cands.postures[c])
-            params["global_orient"] = matrix_to_axis_angle(rotation[n:n + 1])
-            # The body puts its rest keypoints at R (k - pivot) + pivot + transl.
-            params["transl"] = (transl[n] - pivot[c])[None]
-            params_by_frame.append(params)
-    return ({k: torch.cat([p[k] for p in params_by_frame]) for k in params_by_frame[0]},
-            best // count)
+            rows = rotation.view(frames, -1, 3, 3)[b]
+            for pick in _distinct(score[b], rows, cands.postures, keep):
+                n = b * views * count + pick  # row of (frame, labelling, candidate)
+                c = pick % count
+                params = body.init_params(1, cands.postures[c])
+                params["global_orient"] = matrix_to_axis_angle(rotation[n:n + 1])
+                # The body puts its rest keypoints at R (k - pivot) + pivot + transl.
+                params["transl"] = (transl[n] - pivot[c])[None]
+                starts.append(params)
+                chosen.append(pick // count)
+    return ({k: torch.cat([p[k] for p in starts]) for k in starts[0]}, torch.tensor(chosen))
+
+
+def _distinct(score: torch.Tensor, rotation: torch.Tensor, postures: list[str], keep: int
+              ) -> list[int]:
+    """Indices of the ``keep`` best of one frame's scored (labelling, candidate) rows that
+    differ from every better one kept in labelling, posture, or by more than
+    DISTINCT_TURN in root rotation (the rigid fits of neighbouring candidates often end
+    together); the best repeated when fewer are distinct."""
+    count = len(postures)
+
+    def same(i: int, j: int) -> bool:
+        return (i // count == j // count and postures[i % count] == postures[j % count]
+                and _turn(rotation[i], rotation[j]) < DISTINCT_TURN)
+
+    picked: list[int] = []
+    for i in score.argsort().tolist():
+        if len(picked) == keep or not math.isfinite(float(score[i])):
+            break
+        if not any(same(i, j) for j in picked):
+            picked.append(i)
+    picked = picked or [int(score.argmin())]
+    return picked + picked[:1] * (keep - len(picked))
+
+
+def _turn(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Angle (rad) of the rotation taking ``a`` to ``b``."""
+    cos = ((a.T @ b).trace() - 1) / 2
+    return math.acos(max(-1.0, min(1.0, float(cos))))
 
 
 def _centre_weights(seen: torch.Tensor, events: list[str] | None) -> torch.Tensor:

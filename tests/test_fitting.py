@@ -112,9 +112,9 @@ def test_initialisation_finds_swapped_sides(body, parts):
     _, keypoints = standing_person(body, cam2world, yaw=0.4)
     fitter = Fitter(body, CAMERA, load_config("rgb"), floor_scene(cam2world))
     frame = frame_of(keypoints)
-    assert fitter.initialise([frame])[1] == [()]
+    assert fitter.initialise([frame])[1][0] == ()  # the best start
     frame.keypoints.data[:] = frame.keypoints.data[side_swap(parts)]
-    assert fitter.initialise([frame])[1] == [parts]
+    assert fitter.initialise([frame])[1][0] == parts
 
 
 def test_initialisation_with_only_neck_and_hips(body):
@@ -131,6 +131,58 @@ def test_initialisation_with_only_neck_and_hips(body):
     with torch.no_grad():
         hips = CAMERA.project(body(params).keypoints[0, [9, 12]]).mean(0)
     assert float((hips - torch.tensor(frame.keypoints.data[[9, 12], :2]).mean(0)).norm()) < 40
+
+
+def test_several_starts_per_frame_are_distinct_best_first(body):
+    """With start_candidates, each frame gets that many starts, frame-major: the first is
+    the single best start, and each differs from the better ones in labelling, posture or
+    by more than 45 degrees of root rotation."""
+    from prox_engine.geometry import axis_angle_to_matrix
+    from prox_engine.initialisation import DISTINCT_TURN
+
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    frames = [frame_of(standing_person(body, cam2world, yaw)[1]) for yaw in (0.0, 2.0)]
+    config = load_config("rgb")
+    config.start_candidates = 1
+    single, single_labels = Fitter(body, CAMERA, config, scene).initialise(frames)
+    config.start_candidates = 3
+    starts, labels = Fitter(body, CAMERA, config, scene).initialise(frames)
+    assert starts["transl"].shape[0] == 6 and len(labels) == 6
+    for f in range(2):
+        first = {k: v[3 * f] for k, v in starts.items()}
+        for name, value in first.items():
+            assert torch.allclose(value, single[name][f], atol=1e-5), name
+        assert labels[3 * f] == single_labels[f]
+        rows = range(3 * f, 3 * f + 3)
+        rotation = axis_angle_to_matrix(starts["global_orient"])
+        for i in rows:
+            for j in rows:
+                if i < j:
+                    cos = (float((rotation[i].T @ rotation[j]).trace()) - 1) / 2
+                    turn = math.acos(min(1.0, cos))
+                    assert (labels[i] != labels[j] or turn > DISTINCT_TURN
+                            or not torch.equal(starts["body_pose"][i], starts["body_pose"][j]))
+
+
+def test_several_starts_keep_each_frame_its_own_body(body):
+    """Fitting two frames of different people with three starts each returns each frame
+    a body that projects onto its own keypoints (no rows mixed between frames)."""
+    cam2world = tilted_camera()
+    config = FitConfig("short", [Stage("global", {"body": 1.0, "pose_prior": 30.0,
+                                                  "shape": 30.0, "bending": 30.0}),
+                                 Stage("body", {"body": 1.0, "pose_prior": 10.0})],
+                       max_iter=10, max_calls=1, start_candidates=3, start_stages=1)
+    fitter = Fitter(body, CAMERA, config)
+    people = [standing_person(body, cam2world, yaw)[1] for yaw in (0.0, 1.5)]
+    people[1] = people[1] + torch.tensor([0.6, 0.1, 0.8])
+    frames = [frame_of(kp) for kp in people]
+    results = fitter.fit(frames)
+    assert [r.name for r in results] == ["f", "f"] and len(results) == 2
+    for result, frame in zip(results, frames):
+        projected = CAMERA.project(result.keypoints[:25])
+        error = (projected - torch.tensor(frame.keypoints.data[:25, :2])).norm(dim=1)
+        assert float(error.median()) < 15
 
 
 def test_stage_reports_terms_at_the_accepted_point(body):
