@@ -13,7 +13,7 @@ import re
 import stat
 import zipfile
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +25,10 @@ from prox_engine.keypoints import parse_people
 
 KEYPOINT_MAX_BYTES = 16 << 20  # the most read of one keypoint file
 BOMB_RATIO, BOMB_MIN_BYTES = 1000, 1 << 20  # members over 1 MB compressed more than 1000:1
+# ... or a zip of many smaller members: real datasets (PNG, JSON, PLY) pack 1:1 to 20:1.
+TOTAL_RATIO = 100
+# Per recording and fitted frame, the files of recordings/<rec>/ that a fit or report reads.
+FRAME_FOLDERS = ("Depth", "BodyIndex", "Color")
 CHUNK = 1 << 20
 METHODS = {zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA}
 # What reading a damaged or unsupported entry raises (bz2: OSError, a bad local name: ValueError)
@@ -93,8 +97,10 @@ def validate_upload(zip_path: Path, limits: UploadLimits, frames: int | None = N
     return UploadSummary(base, recordings, total)
 
 
-def extract_upload(zip_path: Path, dest: Path, limits: UploadLimits) -> Path:
-    """Extract the zip's regular files under ``dest``; return the PROX base folder in it.
+def extract_upload(zip_path: Path, dest: Path, limits: UploadLimits,
+                   frames: int | None = None) -> Path:
+    """Extract the files a fit of the first ``frames`` frames of each recording reads
+    (:func:`_read_by_fit`) under ``dest``; return the PROX base folder in it.
 
     The member and size checks are repeated first. Existing files are never overwritten
     (``dest`` should be new); after an error ``dest`` may hold some of the files.
@@ -102,9 +108,11 @@ def extract_upload(zip_path: Path, dest: Path, limits: UploadLimits) -> Path:
     dest = Path(dest).resolve()
     with _open(zip_path) as archive:
         base, _, members = _scan(archive, limits)
+        recordings = _recordings([m.filename for m in members], base)
+        wanted = _read_by_fit(base, {rec: names[:frames] for rec, names in recordings.items()})
         total = 0
         for member in members:
-            if member.is_dir():
+            if member.is_dir() or not wanted(member.filename):
                 continue
             target = (dest / member.filename).resolve()
             if target == dest or not target.is_relative_to(dest):
@@ -138,6 +146,10 @@ def _scan(archive: zipfile.ZipFile, limits: UploadLimits
         if info.file_size > BOMB_MIN_BYTES and info.file_size > BOMB_RATIO * info.compress_size:
             raise UploadError(413, info.filename, f"compressed more than {BOMB_RATIO}:1 "
                                                   "(a zip bomb?)")
+    packed = sum(info.compress_size for info in infos)
+    if total > BOMB_MIN_BYTES and total > TOTAL_RATIO * packed:
+        raise UploadError(413, None, f"{total} bytes uncompressed from {packed} compressed, "
+                                     f"more than {TOTAL_RATIO}:1 in all (a zip bomb?)")
     members = [info for info in infos if not _ignored(info.filename)]
     return _base([m.filename for m in members]), total, members
 
@@ -189,6 +201,18 @@ def _name_problem(name: str) -> str | None:
     return None
 
 
+def _plain_name_problem(name: str) -> str | None:
+    """Why a recording or frame name is not a plain file name (it names result folders
+    and report pages, and is linked from them), or None."""
+    if name in ("", ".", ".."):
+        return f"'{name}' is not a file name"
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        return "contains a control character"
+    if bad := sorted(set(name) & set(':/\\')):
+        return f"contains {' '.join(repr(c) for c in bad)}"
+    return None
+
+
 def _ignored(name: str) -> bool:
     """macOS debris: ``__MACOSX/`` and ``.DS_Store``."""
     return name.startswith("__MACOSX/") or name.removesuffix("/").split("/")[-1] == ".DS_Store"
@@ -214,9 +238,14 @@ def _recordings(names: list[str], base: str) -> dict[str, list[str]]:
         rec, slash, rest = name[len(prefix):].partition("/")
         if not slash:
             continue
+        if problem := _plain_name_problem(rec):
+            raise UploadError(400, f"{prefix}{rec}/", f"recording name {problem}")
         frames = recordings.setdefault(rec, [])
         if rest.endswith(KEYPOINT_SUFFIX) and "/" not in rest:
-            frames.append(rest.removesuffix(KEYPOINT_SUFFIX))
+            frame = rest.removesuffix(KEYPOINT_SUFFIX)
+            if problem := _plain_name_problem(frame):
+                raise UploadError(400, name, f"frame name {problem}")
+            frames.append(frame)
     return {rec: sorted(frames) for rec, frames in sorted(recordings.items())}
 
 
@@ -234,6 +263,28 @@ def _check_layout(files: set[str], base: str, recordings: dict[str, list[str]]) 
     for name in needed:
         if name not in files:
             raise UploadError(422, name, f"missing: {LAYOUT}")
+
+
+def _read_by_fit(base: str, recordings: dict[str, list[str]]) -> Callable[[str], bool]:
+    """Whether a member is read when fitting these recordings' frames and reporting on
+    them: calibration, each scene's mesh, camera pose and PROX SDF, and per frame its
+    keypoints and its depth, body-mask and colour images."""
+    shared = {f"{base}calibration/"}
+    frame_files: set[str] = set()
+    for rec, frames in recordings.items():
+        scene = Recording(Path(base), rec).scene_name
+        shared |= {f"{base}scenes/{scene}.ply", f"{base}cam2world/{scene}.json",
+                   f"{base}sdf/{scene}.json", f"{base}sdf/{scene}_sdf.npy"}
+        for frame in frames:
+            frame_files.add(f"{base}keypoints/{rec}/{frame}{KEYPOINT_SUFFIX}")
+            frame_files |= {f"{base}recordings/{rec}/{kind}/{frame}" for kind in FRAME_FOLDERS}
+
+    def wanted(name: str) -> bool:
+        folder, _, file = name.rpartition("/")
+        return (name in shared or f"{folder}/" in shared or name in frame_files
+                or f"{folder}/{file.rsplit('.', 1)[0]}" in frame_files)
+
+    return wanted
 
 
 def _check_depth(files: set[str], base: str, recordings: dict[str, list[str]]) -> None:

@@ -143,6 +143,24 @@ def test_extract_writes_the_dataset_the_engine_reads(tmp_path):
     assert rec.depth_paths(_frame(0)) is not None
 
 
+def test_extract_writes_only_what_the_fit_reads(tmp_path):
+    """Files of frames beyond ``frames``, other scenes and stray folders stay packed."""
+    files = _layout(depth=3) | {
+        "recordings/Room_00/Color/" + _frame(0) + ".jpg": b"jpeg",
+        "recordings/Room_00/Color/" + _frame(2) + ".jpg": b"jpeg",
+        "recordings/Room_00/Other/" + _frame(0) + ".bin": b"x",
+        "scenes/Elsewhere.ply": PLY, "padding/zeros.bin": bytes(1000),
+        "sdf/Room.json": "{}", "calibration/IR.json": "{}"}
+    path = _zip(tmp_path / "u.zip", files)
+    dest = tmp_path / "out"
+    extract_upload(path, dest, LIMITS, frames=2)
+    written = {p.relative_to(dest).as_posix() for p in _files_under(dest)}
+    kept = {name for name in files
+            if not name.startswith(("padding/", "scenes/Elsewhere", "recordings/Room_00/Other"))
+            and _frame(2) not in name}
+    assert written == kept
+
+
 def test_extract_at_the_root_returns_dest(tmp_path):
     path = _zip(tmp_path / "u.zip", _layout())
     assert extract_upload(path, tmp_path / "out", LIMITS) == (tmp_path / "out").resolve()
@@ -246,8 +264,37 @@ def test_compression_ratio_of_a_bomb(tmp_path):
     _rejected(path, 413, "recordings/z.bin", "compressed more than 1000:1")
 
 
+def test_compression_ratio_of_many_small_members(tmp_path):
+    """Members of 1 MB each stay under the per-member check; the zip's total ratio does
+    not (a 1.6 MB upload that would write 1 GB, here scaled down)."""
+    zeros = tuple((f"recordings/Room_00/pad/{i}.bin", bytes(1 << 20)) for i in range(8))
+    path = _zip(tmp_path / "u.zip", _layout(), extra=zeros)
+    _rejected(path, 413, None, "more than 100:1 in all",
+              limits=UploadLimits(64 << 20, 100, 3, 10))
+    with pytest.raises(UploadError):
+        extract_upload(path, tmp_path / "out", UploadLimits(64 << 20, 100, 3, 10))
+    assert not (tmp_path / "out").exists()  # refused before writing anything
+
+
+@pytest.mark.parametrize("name, problem", [
+    ("keypoints/Room_00/javascript:alert(document.domain)_keypoints.json", "':'"),
+    ("keypoints/Room_00/.._keypoints.json", "'..' is not a file name"),
+    ("keypoints/Room_00/._keypoints.json", "'.' is not a file name"),
+    ("keypoints/Room_00/_keypoints.json", "'' is not a file name"),
+    ("keypoints/Room_00/a\tb_keypoints.json", "control character"),
+    ("keypoints/Room:1/" + _frame(0) + "_keypoints.json", "':'"),
+])
+def test_frame_and_recording_names_must_be_plain_file_names(tmp_path, name, problem):
+    """Frame and recording names become folders and report links: a name that is not a
+    plain file name is a 400 naming the file, before anything is extracted."""
+    path = _zip(tmp_path / "u.zip", _layout(), extra=((name, KEYPOINTS),))
+    error = _rejected(path, 400, name if "Room:1" not in name else "keypoints/Room:1/",
+                      problem)
+    assert ("frame name" if "Room:1" not in name else "recording name") in error.problem
+
+
 def test_lying_declared_size_cannot_fill_the_disk(tmp_path):
-    name = "recordings/Room_00/Color/big.jpg"
+    name = f"recordings/Room_00/Color/{_frame(0)}.jpg"
     path = _zip(tmp_path / "u.zip", _layout(), extra=((name, b"\xff" * (1 << 20)),))
     _patch(path, name, 24, 100)  # declared uncompressed size
     assert validate_upload(path, LIMITS).extracted_bytes < 1 << 20

@@ -110,7 +110,8 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     upload = scratch / "upload.zip"
     storage.get_file(f"jobs/{job_id}/upload.zip", upload)
     data = scratch / "data"
-    base = extract_upload(upload, data, settings.upload_limits()).relative_to(data)
+    base = extract_upload(upload, data, settings.upload_limits(),
+                          options.frames).relative_to(data)
     upload.unlink()
     config = options.fit_config(settings.model_dir)
     bodies: dict[str, BodyModel] = {}
