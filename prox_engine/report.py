@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from urllib.parse import quote
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -238,6 +239,9 @@ def _templates():
 
     env = Environment(loader=FileSystemLoader(template_dir()),
                       autoescape=select_autoescape(["html"]))
+    # Names of recordings and frames come from users: quoted whole inside links, and a
+    # link that starts with one starts with "./", so that no name reads as a scheme.
+    env.filters["urlpart"] = lambda name: quote(str(name), safe="")
     env.globals.update(fmt=_fmt, pct=lambda v: _fmt(v * 100 if v is not None else None,
                                                     "%.1f %%"),
                        cm=lambda v: _fmt(v * 100 if v is not None else None, "%.1f cm"))

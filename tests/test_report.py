@@ -8,6 +8,7 @@ import subprocess
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 import pytest
@@ -37,7 +38,7 @@ def _check_page(page: Path) -> list[Path]:
     images = []
     for link in parser.links:
         assert not link.startswith(("http:", "https:", "//")), f"{page}: external {link}"
-        target = (page.parent / link.split("#")[0]).resolve()
+        target = (page.parent / unquote(link.split("#")[0])).resolve()
         assert target.exists(), f"{page}: {link} does not resolve"
         if target.suffix == ".jpg":
             images.append(target)
@@ -105,3 +106,33 @@ def test_report_loads_in_headless_chromium(cli_fits, tmp_path):
     picture = np.asarray(Image.open(screenshot).convert("RGB"))
     assert picture.shape == (1400, 1280, 3) and picture.std() > 20
     print(f"report screenshot: {screenshot}")
+
+
+HOSTILE = "javascript:alert(document.domain)"
+
+
+def test_names_from_uploads_never_become_a_link_scheme():
+    """A frame or recording named like a URL (upload names are untrusted) is linked as a
+    relative path ("./" and quoted), and shown escaped."""
+    from prox_engine.report import _legend_colours, _templates
+
+    frame = {"frame": "s001", "reprojection_error_px": 1.0, "penetrating_share": 0.0,
+             "max_depth_m": 0.0, "contact_parts": [], "seconds": 1.0, "losses": {}}
+    page = _templates().get_template("frame.html").render(
+        f=frame, s={"recording": "<b>r</b>", "config": "prox"}, views=[], timings={},
+        params="", previous=HOSTILE, next=f"{HOSTILE}<x>",
+        colours=_legend_colours(baseline=False))
+    hrefs = _Links()
+    hrefs.feed(page)
+    assert "./javascript%3Aalert%28document.domain%29.html" in hrefs.links
+    assert "./javascript%3Aalert%28document.domain%29%3Cx%3E.html" in hrefs.links
+    assert not any(link.lower().startswith("javascript") for link in hrefs.links)
+    assert "<b>r</b>" not in page and "&lt;x&gt;" in page
+    runs = _templates().get_template("runs.html").render(
+        title="t", summaries=[{"recording": HOSTILE, "config": "prox", "has_report": True,
+                               "seconds_per_frame": 1.0, "reprojection_error_px": 1.0,
+                               "penetration": {"mean_penetrating_share": 0.0},
+                               "contact": {"share_of_frames_with_contact": 1.0}}])
+    hrefs = _Links()
+    hrefs.feed(runs)
+    assert "./javascript%3Aalert%28document.domain%29/report/index.html" in hrefs.links
