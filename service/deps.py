@@ -43,11 +43,15 @@ def get_owner(settings: Annotated[Settings, Depends(get_settings)],
     raise ApiError(401, "invalid API token", headers={"WWW-Authenticate": "Bearer"})
 
 
-def report_key(settings: Settings, owner: str, job_id: str) -> str:
+def report_key(settings: Settings, owner: str, job_id: str) -> str | None:
     """A browser-friendly key to one job's report pages, derived from its owner's token (so
-    the token itself never appears in a URL); changes when the token does."""
-    token = min(t for t, o in settings.tokens.items() if o == owner)
-    return hmac.new(token.encode(), f"report:{job_id}".encode(), hashlib.sha256).hexdigest()[:32]
+    the token itself never appears in a URL); changes when the token does, and is None
+    once the owner has no token."""
+    tokens = [t for t, o in settings.tokens.items() if o == owner]
+    if not tokens:
+        return None
+    return hmac.new(min(tokens).encode(), f"report:{job_id}".encode(),
+                    hashlib.sha256).hexdigest()[:32]
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

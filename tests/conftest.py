@@ -80,3 +80,13 @@ def plane_mesh(size: float = 4.0, z: float = 0.0) -> trimesh.Trimesh:
 
 def closed_box(extents=(1.0, 1.0, 1.0)) -> trimesh.Trimesh:
     return trimesh.creation.box(extents).subdivide_to_size(0.2)
+
+
+@pytest.fixture
+def unused_port() -> int:
+    """A local TCP port nothing listens on (just released by the OS)."""
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]

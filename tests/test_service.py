@@ -104,6 +104,32 @@ def test_health_and_docs(stack):
     assert httpx.get(f"{stack.url}/docs").status_code == 200
 
 
+def test_health_does_not_disclose_where_redis_is(unused_port):
+    """With Redis unreachable /healthz says so (503) without its host or port."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    settings = Settings(redis_url=f"redis://127.0.0.1:{unused_port}/0", tokens={"t": "a"})
+    with TestClient(create_app(settings)) as app:
+        response = app.get("/healthz")
+    assert response.status_code == 503 and response.json()["redis"] == "unreachable"
+    assert str(unused_port) not in response.text and "127.0.0.1" not in response.text
+
+
+def test_report_key_of_an_owner_without_a_token():
+    """An owner whose token the operator removed has no report key (was a 500: min() of
+    nothing); the owner with a token gets a stable one."""
+    from service.deps import report_key
+    from service.settings import Settings
+
+    settings = Settings(tokens={"alice-token": "alice"})
+    assert report_key(settings, "carol", "job1") is None
+    assert report_key(settings, "alice", "job1") == report_key(settings, "alice", "job1")
+    assert report_key(settings, "alice", "job1") != report_key(settings, "alice", "job2")
+
+
 def test_full_job_upload_to_download(stack, dataset_zip, body, tmp_path):
     http = client(stack)
     answer = submit(http, dataset_zip, config="rgb", frames="1")
@@ -166,7 +192,15 @@ def check_report_access(stack: LocalStack, job: dict, frame: str) -> None:
     assert image.status_code == 200 and image.headers["content-type"] == "image/jpeg"
     assert image.content[:2] == b"\xff\xd8"
     assert httpx.get(f"{base}/{REC}/report/index.html").status_code == 401
-    assert httpx.get(f"{base}/", params={"key": "0" * 32}).status_code == 401
+    # A wrong key (ASCII or not, query or cookie) reads as an unknown job: same 404 body.
+    unknown = f"{stack.url}/v1/jobs/{'0' * 32}/report/"
+    for attempt in ({"params": {"key": "0" * 32}}, {"params": {"key": "é"}},
+                    {"cookies": {"prox_report": "é"}}):
+        known = httpx.get(f"{base}/", **attempt)
+        other = httpx.get(unknown, **attempt)
+        assert known.status_code == other.status_code == 404, (attempt, known.text)
+        assert known.json() == {"detail": f"no job {job['id']}"}
+        assert other.json() == {"detail": f"no job {'0' * 32}"}
     bob = client(stack, "bob").get(f"{base}/{REC}/report/index.html")
     assert bob.status_code == 404
     assert client(stack).get(f"{base}/{REC}/report/index.html").status_code == 200

@@ -39,12 +39,13 @@ def report_file(job_id: str, path: str, request: Request, settings: SettingsDep,
         raise ApiError(401, "open the job's links.report URL, or send a bearer token",
                        headers={"WWW-Authenticate": "Bearer"})
     record = store.get(job_id)
-    if record is None:
-        raise ApiError(404, f"no job {job_id}")
-    valid = presented is not None and hmac.compare_digest(
-        presented, report_key(settings, record["owner"], job_id))
-    if not valid and get_owner(settings, credentials) != record["owner"]:
-        raise ApiError(404, f"no job {job_id}")
+    expected = report_key(settings, record["owner"], job_id) if record is not None else None
+    valid = (presented is not None and expected is not None
+             and hmac.compare_digest(presented.encode(), expected.encode()))
+    if not valid:  # a wrong key reads as an unknown job: ids are not disclosed
+        owner = get_owner(settings, credentials) if credentials is not None else None
+        if record is None or owner != record["owner"]:
+            raise ApiError(404, f"no job {job_id}")
     if record["status"] != "finished" or not record["options"]["report"]:
         raise ApiError(409, f"job {job_id} has no report (status {record['status']})")
     name = path + "index.html" if path == "" or path.endswith("/") else path
