@@ -17,6 +17,7 @@ from .camera import Camera
 from .errors import InputError
 
 KEYPOINT_SUFFIX = "_keypoints.json"
+MAX_COORDINATE = 1e4  # metres: a scanned room or its camera is never this far out
 
 
 @dataclass
@@ -82,12 +83,15 @@ def list_recordings(base: Path) -> list[str]:
     return names
 
 
-def _read_json(path: Path) -> object:
+def _read_json(path: Path, content: bytes | None = None) -> object:
+    """The JSON document of ``path`` (or of ``content``, read from it elsewhere)."""
     try:
-        return json.loads(Path(path).read_text())
+        return json.loads(Path(path).read_bytes() if content is None else content)
     except FileNotFoundError as exc:
         raise InputError(path, "file not found") from exc
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except RecursionError as exc:
+        raise InputError(path, "not valid JSON (nested too deeply)") from exc
+    except (OSError, ValueError) as exc:  # ValueError: bad UTF-8 or JSON
         raise InputError(path, f"not valid JSON ({exc})") from exc
 
 
@@ -103,9 +107,10 @@ def _numbers(path: Path, value: object, name: str, count: int | None = None) -> 
     return array
 
 
-def load_calibration(path: Path) -> Camera:
-    """``Color.json`` with ``f`` [fx, fy], ``c`` [cx, cy] and optional ``k`` distortion."""
-    data = _read_json(path)
+def load_calibration(path: Path, content: bytes | None = None) -> Camera:
+    """``Color.json`` with ``f`` [fx, fy], ``c`` [cx, cy] and optional ``k`` distortion
+    (from ``content`` when given, ``path`` naming it in errors)."""
+    data = _read_json(path, content)
     if not isinstance(data, dict) or "f" not in data or "c" not in data:
         raise InputError(path, "calibration needs 'f' [fx, fy] and 'c' [cx, cy]")
     f = _numbers(path, data["f"], "f")
@@ -125,9 +130,12 @@ def load_calibration(path: Path) -> Camera:
     return Camera(float(f[0]), float(f[1]), float(c[0]), float(c[1]), k.tolist(), width, height)
 
 
-def load_cam2world(path: Path) -> np.ndarray:
-    """A 4x4 rigid camera-to-world matrix; rejects non-rigid or singular ones."""
-    matrix = _numbers(path, _read_json(path), "cam2world", 16).reshape(4, 4)
+def load_cam2world(path: Path, content: bytes | None = None) -> np.ndarray:
+    """A 4x4 rigid camera-to-world matrix; rejects non-rigid or singular ones, and
+    positions beyond MAX_COORDINATE (from ``content`` when given)."""
+    matrix = _numbers(path, _read_json(path, content), "cam2world", 16).reshape(4, 4)
+    if (np.abs(matrix[:3, 3]) > MAX_COORDINATE).any():
+        raise InputError(path, f"cam2world translation beyond {MAX_COORDINATE:.0f} m")
     rotation = matrix[:3, :3]
     det = np.linalg.det(rotation)
     if abs(det) < 1e-6:
@@ -139,21 +147,39 @@ def load_cam2world(path: Path) -> np.ndarray:
     return matrix
 
 
-def load_scene_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (N, 3) float64 and triangles (M, 3) int64 of a scene scan."""
+def load_scene_mesh(path: Path, content: bytes | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (N, 3) float64 and triangles (M, 3) int64 of a scene scan (from
+    ``content`` when given, ``path`` naming it and its format)."""
+    import io
+
     import trimesh
 
     path = Path(path)
-    if not path.exists():
+    if content is None and not path.exists():
         raise InputError(path, "scene mesh not found")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        source = {"file_obj": io.BytesIO(content), "file_type": path.suffix.lstrip(".")} \
+            if content is not None else {"file_obj": path}
+        mesh = trimesh.load(**source, force="mesh", process=False)
+        faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
+        vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise InputError(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
-    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
     if len(faces) == 0 or len(vertices) == 0:
         raise InputError(path, "mesh has no triangles")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise InputError(path, "mesh faces must be triangles")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(path, f"face vertex index out of range ({faces.min()}..{faces.max()} "
+                               f"for {len(vertices)} vertices)")
     if not np.isfinite(vertices).all():
         raise InputError(path, "mesh has NaN or infinite vertex coordinates")
+    if (np.abs(vertices) > MAX_COORDINATE).any():
+        raise InputError(path, f"mesh has coordinates beyond {MAX_COORDINATE:.0f} m (metres "
+                               "expected)")
+    tri = vertices[faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area > 1e-12).any():
+        raise InputError(path, "mesh has only degenerate (zero-area) triangles")
     return vertices, faces

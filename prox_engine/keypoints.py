@@ -36,6 +36,7 @@ SIDE_PAIRS = {"legs": [(12, 9), (13, 10), (14, 11), (19, 22), (20, 23), (21, 24)
 # Torso edges (shoulder-hip) for the similar-triangles depth initialisation.
 TORSO_EDGES = [(2, 9), (5, 12)]  # right shoulder - right hip, left shoulder - left hip
 SHOULDERS = (2, 5)
+MAX_PIXEL = 1e6  # no image is this large; squares of larger values overflow float32
 
 
 def side_swap(parts: tuple[str, ...]) -> list[int]:
@@ -87,6 +88,9 @@ def _points(person: dict, key: str, count: int, path: Path) -> np.ndarray | None
         raise InputError(path, f"'{key}' contains NaN or infinite values")
     if (array[:, 2] < 0).any():
         raise InputError(path, f"'{key}' has negative confidences")
+    if (np.abs(array[:, :2]) > MAX_PIXEL).any() or (array[:, 2] > MAX_PIXEL).any():
+        raise InputError(path, f"'{key}' has values beyond {MAX_PIXEL:.0e} (pixels of "
+                               "an image, confidences in [0, 1])")
     return array
 
 

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
-from prox_engine.dataset import KEYPOINT_SUFFIX, Recording
+from prox_engine.dataset import (KEYPOINT_SUFFIX, Recording, load_calibration,
+                                 load_cam2world, load_scene_mesh)
 from prox_engine.errors import InputError
 from prox_engine.keypoints import parse_people
 
@@ -91,6 +92,7 @@ def validate_upload(zip_path: Path, limits: UploadLimits, frames: int | None = N
                                          f"{limits.max_frames} (use 'frames' to fit fewer)")
         if needs_depth:
             _check_depth(files, base, recordings)
+        _check_shared(archive, base, recordings)
         for rec, names in recordings.items():
             for frame in names:
                 _check_keypoints(archive, f"{base}keypoints/{rec}/{frame}{KEYPOINT_SUFFIX}")
@@ -298,19 +300,41 @@ def _check_depth(files: set[str], base: str, recordings: dict[str, list[str]]) -
                                                  "fitted frame")
 
 
+def _check_shared(archive: zipfile.ZipFile, base: str, recordings: dict[str, list[str]]
+                  ) -> None:
+    """422 unless the engine reads the calibration and each scene's mesh and camera pose
+    (face indices in range, finite and sane coordinates, a rigid pose)."""
+    checks = {f"{base}calibration/Color.json": load_calibration}
+    for rec in recordings:
+        scene = Recording(Path(base), rec).scene_name
+        checks[f"{base}scenes/{scene}.ply"] = load_scene_mesh
+        checks[f"{base}cam2world/{scene}.json"] = load_cam2world
+    for name, load in checks.items():
+        try:
+            load(Path(name), _read(archive, name))
+        except InputError as exc:
+            raise UploadError(422, name, exc.problem) from exc
+
+
 def _check_keypoints(archive: zipfile.ZipFile, name: str) -> None:
     """422 unless the engine parses the file; nobody detected is fine."""
-    try:
-        with archive.open(name) as member:
-            content = member.read(KEYPOINT_MAX_BYTES + 1)
-    except DAMAGED as exc:
-        raise UploadError(400, name, f"damaged or unsupported entry ({exc})") from exc
-    if len(content) > KEYPOINT_MAX_BYTES:
-        raise UploadError(413, name, f"keypoint file over {KEYPOINT_MAX_BYTES >> 20} MB")
+    content = _read(archive, name, KEYPOINT_MAX_BYTES)
     try:
         parse_people(content, name)
     except InputError as exc:
         raise UploadError(422, name, exc.problem) from exc
+
+
+def _read(archive: zipfile.ZipFile, name: str, limit: int | None = None) -> bytes:
+    """A member's bytes (400 when damaged; 413 past ``limit``)."""
+    try:
+        with archive.open(name) as member:
+            content = member.read(-1 if limit is None else limit + 1)
+    except DAMAGED as exc:
+        raise UploadError(400, name, f"damaged or unsupported entry ({exc})") from exc
+    if limit is not None and len(content) > limit:
+        raise UploadError(413, name, f"file over {limit >> 20} MB, the most read of its kind")
+    return content
 
 
 def _chunks(archive: zipfile.ZipFile, member: zipfile.ZipInfo) -> Iterator[bytes]:

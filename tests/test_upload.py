@@ -386,3 +386,29 @@ def test_malformed_keypoint_files(tmp_path, content, problem):
     name = f"mydata/keypoints/Room_00/{_frame(1)}_keypoints.json"
     files[name] = content
     _rejected(_zip(tmp_path / "u.zip", files), 422, name, problem)
+
+
+def _ply(vertices: str = "0 0 0\n1 0 0\n0 1 0\n", faces: str = "3 0 1 2\n") -> str:
+    return (f"ply\nformat ascii 1.0\nelement vertex {vertices.count(chr(10))}\n"
+            "property float x\nproperty float y\nproperty float z\n"
+            f"element face {faces.count(chr(10))}\n"
+            "property list uchar int vertex_indices\nend_header\n" + vertices + faces)
+
+
+@pytest.mark.parametrize("file, content, problem", [
+    ("scenes/Room.ply", _ply(faces="3 0 1 1000000000\n"), "index out of range"),
+    ("scenes/Room.ply", _ply(faces="3 0 1 -1\n"), "index out of range"),
+    ("scenes/Room.ply", _ply(vertices="0 0 0\n1e38 0 0\n0 1 0\n"), "beyond 10000 m"),
+    ("scenes/Room.ply", _ply(faces="3 0 1 1\n"), "degenerate"),
+    ("scenes/Room.ply", "ply\nformat ascii 1.0\nend_header\n", "no triangles"),
+    ("cam2world/Room.json", "[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ("cam2world/Room.json", json.dumps([[1, 0, 0, 1e38], [0, 1, 0, 0], [0, 0, 1, 0],
+                                        [0, 0, 0, 1]]), "beyond 10000 m"),
+    ("calibration/Color.json", json.dumps({"f": [500, 500]}), "'c'"),
+    (f"keypoints/Room_00/{_frame(0)}_keypoints.json",
+     _people([v for i in range(25) for v in (1e308, 200.0, 0.9)]), "beyond 1e+06"),
+])
+def test_shared_files_and_keypoints_the_engine_cannot_use(tmp_path, file, content, problem):
+    """What the worker would fail on (or fit into NaN) is a 422 naming the file at upload."""
+    path = _zip(tmp_path / "u.zip", _layout() | {file: content})
+    _rejected(path, 422, file, problem)
