@@ -358,7 +358,18 @@ BAD_UPLOADS = {
     "genders for other recordings": (lambda z: z.read_bytes(),
                                      {"model": "smplx", "genders": '{"Other_1": "neutral"}'},
                                      422, None),
+    "genders a list": (lambda z: z.read_bytes(), {"genders": '["female"]'}, 422, None),
+    "genders a number": (lambda z: z.read_bytes(), {"genders": "5"}, 422, None),
+    "a gender that is an object": (lambda z: z.read_bytes(),
+                                   {"genders": json.dumps({REC: {"a": ["female"]}})}, 422, None),
+    "genders nested deeply": (lambda z: z.read_bytes(),
+                              {"genders": "[" * 100_000 + "]" * 100_000}, 422, None),
 }
+
+
+def test_listing_offsets_past_any_integer_are_a_json_422(stack):
+    answer = client(stack).get("/v1/jobs", params={"offset": "75794324159085474796797952"})
+    assert answer.status_code == 422 and answer.json()["detail"]
 
 
 @pytest.mark.parametrize("case", list(BAD_UPLOADS))

@@ -23,6 +23,7 @@ from ..upload import UploadError, validate_upload
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 CONFIGS = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
 _CHUNK = 1 << 20
+MAX_OFFSET = 10 ** 9  # far past any listing, well inside Redis's integer range
 
 
 def _base(request: Request) -> str:
@@ -95,10 +96,13 @@ def _check_body(settings: Settings, model: str, gender: str, genders: str | None
     if genders:
         try:
             per_recording = json.loads(genders)
+        except RecursionError as exc:
+            raise ApiError(422, "'genders' is nested too deeply") from exc
         except ValueError as exc:
             raise ApiError(422, f"'genders' is not JSON ({exc})") from exc
-        if not isinstance(per_recording, dict) or not set(per_recording) <= set(recordings):
-            raise ApiError(422, "'genders' must map recordings of the upload to genders")
+        if (not isinstance(per_recording, dict) or not set(per_recording) <= set(recordings)
+                or not all(isinstance(g, str) for g in per_recording.values())):
+            raise ApiError(422, "'genders' must map recordings of the upload to gender names")
     wanted = {gender, *(per_recording or {}).values()}
     if not wanted <= set(GENDERS):
         raise ApiError(422, f"unknown gender in {sorted(wanted)} (choose "
@@ -115,7 +119,7 @@ def _check_body(settings: Settings, model: str, gender: str, genders: str | None
 
 @router.get("", response_model=JobPage, summary="The caller's jobs, newest first")
 def list_jobs(request: Request, owner: OwnerDep, store: StoreDep, settings: SettingsDep,
-              offset: Annotated[int, Query(ge=0)] = 0,
+              offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
               limit: Annotated[int, Query(ge=1, le=100)] = 20) -> JobPage:
     records, total = store.list(owner, offset, limit)
     base = _base(request)
