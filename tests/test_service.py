@@ -251,14 +251,19 @@ def test_cancel_a_running_and_a_queued_job(stack, dataset_zip):
     assert httpx.get(f"{stack.url}/healthz").json()["workers"] == 1
 
 
-def test_failed_job_says_why_and_the_worker_survives(stack, dataset_zip):
+def test_a_job_where_every_frame_failed_is_failed_and_the_worker_survives(stack, dataset_zip):
+    """Nobody detected in the only frame fitted: the job is failed (it was 'finished' with
+    nothing in it), says why, and the worker goes on."""
     http = client(stack)
-    broken = edited_zip(dataset_zip, replace={"scenes/Synthetic.ply": b"ply\nnonsense\n"})
-    answer = submit(http, broken, config="rgb", frames="1")
+    empty = keypoint_member(dataset_zip, 0)
+    answer = submit(http, edited_zip(dataset_zip, replace={empty: b'{"people": []}'}),
+                    config="rgb", frames="1")
     assert answer.status_code == 202, answer.text
     job = wait(http, answer.json()["id"], ended, timeout=120)
-    assert job["status"] == "failed"
-    assert job["error"].startswith("scenes/Synthetic.ply: cannot read mesh"), job["error"]
+    assert job["status"] == "failed", job
+    assert job["error"] == (f"no frame could be fitted: {empty}: 'people' is empty: nobody "
+                            "detected in this frame"), job["error"]
+    assert job["progress"]["frames_failed"] == 1
     assert http.get(f"/v1/jobs/{job['id']}/results").status_code == 409
     assert httpx.get(f"{stack.url}/healthz").json()["workers"] == 1
 
@@ -342,6 +347,8 @@ BAD_UPLOADS = {
     "symlink": (lambda z: _with_extra(z, _member("link", mode=stat.S_IFLNK | 0o777),
                                       b"/etc/passwd"), {}, 400, "link"),
     "zip bomb": (lambda z: _bomb(), {}, 413, None),
+    "unreadable scene mesh": (lambda z: edited_zip(z, replace={
+        "scenes/Synthetic.ply": b"ply\nnonsense\n"}), {}, 422, "scenes/Synthetic.ply"),
     "missing cam2world": (lambda z: edited_zip(z, drop="cam2world/Synthetic.json"), {}, 422,
                           "cam2world/Synthetic.json"),
     "bad keypoints": (lambda z: edited_zip(z, replace={keypoint_member(z): b"{not json"}),

@@ -150,8 +150,12 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
                    for f in summary["failures"]]
         if summary["seconds_per_frame"] is not None:
             seconds.append(summary["seconds_per_frame"])
-    if sum("frame" not in e for e in errors) == len(record["recordings"]):
-        store.fail(job_id, attempt, "; ".join(e["error"] for e in errors), errors=errors)
+    if done == failed + sum(record["recordings"][e["recording"]] for e in errors
+                            if "frame" not in e):  # nothing fitted: every frame failed
+        shown = "; ".join(e["error"] for e in errors[:3])
+        more = f" (and {len(errors) - 3} more)" if len(errors) > 3 else ""
+        store.fail(job_id, attempt, f"no frame could be fitted: {shown}{more}",
+                   frames_done=done, frames_failed=failed, errors=errors)
         return "failed"
     if options.report:
         errors += _reports(out, data / base, list(record["recordings"]), options, job_id,
