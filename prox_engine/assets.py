@@ -6,9 +6,12 @@ safetensors file, and warms warp's kernel cache; run time only loads that file.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import sys
 import tempfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 
@@ -26,15 +29,38 @@ def sdf_cache_dir() -> Path:
 
 
 def configure_warp() -> None:
-    """Point warp at our kernel cache; must run before anny (and so warp) is imported."""
+    """Point warp at our kernel cache and start it quietly; must run before anny (and so
+    warp) is imported. Without this every command and worker log would begin with warp's
+    device banner and, on machines without a GPU, a CUDA warning its C code prints."""
     os.environ.setdefault("WARP_CACHE_PATH", str(home() / "warp"))
+    import warp
+
+    warp.config.log_level = warp.LOG_WARNING
+    with _stderr_silenced():
+        warp.init()  # a no-op once warp has started
 
 
-def setup(force: bool = False) -> Path:
-    """Bake the anny model data (if missing) and warm the warp kernel cache."""
+@contextlib.contextmanager
+def _stderr_silenced() -> Iterator[None]:
+    """Discard what native code writes to file descriptor 2 meanwhile."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> Path:
+    """Bake the anny model data (if missing) and warm the warp kernel cache, telling
+    ``say`` what it is doing."""
     configure_warp()
     target = anny_model_path()
     if force or not target.exists():
+        say("building anny's body model from its MakeHuman data (once, about 80 s) ...")
         target.parent.mkdir(parents=True, exist_ok=True)
         build_dir = Path(tempfile.mkdtemp(prefix="anny-build-", dir=target.parent))
         os.environ["ANNY_CACHE_DIR"] = str(build_dir)  # never touch the user's ~/.cache/anny
@@ -50,6 +76,7 @@ def setup(force: bool = False) -> Path:
             shutil.rmtree(build_dir, ignore_errors=True)
     from .body.anny_body import AnnyBody
 
+    say("compiling the skinning kernel (cached after the first time) ...")
     body = AnnyBody.load()  # compiles and caches the skinning kernel
     body(body.init_params(1))
     return target

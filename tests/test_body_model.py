@@ -70,3 +70,15 @@ def test_shape_prior_is_annys_age_conditioned_beta_likelihood(body):
     grad_ours, = torch.autograd.grad(ours.sum(), shape)
     grad_expected, = torch.autograd.grad(expected.sum(), shape)
     torch.testing.assert_close(grad_ours, grad_expected.float(), rtol=1e-3, atol=1e-3)
+
+
+def test_loading_the_body_model_prints_nothing():
+    """No warp device banner or CUDA warning at the head of every command and worker log
+    (the warning comes from warp's C code, straight to file descriptor 2)."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", "from prox_engine.body.anny_body import "
+                          "AnnyBody; AnnyBody.load()"], capture_output=True, text=True,
+                         check=True)
+    assert run.stdout == "" and "Warp" not in run.stderr, run.stderr
