@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from .config import BODY_MODELS, GENDERS
+from .config import BODY_MODELS, CONFIG_DIR, GENDERS
 from .errors import InputError
 
 if TYPE_CHECKING:
@@ -28,7 +28,7 @@ def cmd_setup(args: argparse.Namespace) -> int:
     from . import assets
 
     start = time.perf_counter()
-    path = assets.setup(force=args.force)
+    path = assets.setup(force=args.force, say=lambda text: print(text, flush=True))
     print(f"anny model data: {path} ({time.perf_counter() - start:.1f} s)")
     return 0
 
@@ -58,7 +58,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         def progress(done: int, total: int, frame: str) -> None:
             bar.total = total
             bar.n = done
-            bar.set_postfix_str(frame[-24:])
+            bar.set_postfix_str(frame)  # whole: frame names differ at their ends
             bar.refresh()
 
         try:
@@ -238,10 +238,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
                   f"{stack.url}/v1/jobs)")
         print("Ctrl-C stops it.", flush=True)
         try:
-            while all(p.poll() is None for p in [stack.api, *stack.workers]):
+            while stack.api.poll() is None:
+                for name in stack.supervise():
+                    print(f"{name} exited and was restarted; see the logs in "
+                          f"{stack.root / 'logs'}", file=sys.stderr, flush=True)
                 time.sleep(1)
-            print("a service process exited; see the logs in "
-                  f"{stack.root / 'logs'}", file=sys.stderr)
+            print(f"the API exited; see the logs in {stack.root / 'logs'}", file=sys.stderr)
             return 1
         except KeyboardInterrupt:
             return 0
@@ -260,8 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--recording", action="append", help="recording name (repeatable); "
                    "default: every folder under BASE/keypoints")
+    builtin = " | ".join(sorted(path.stem for path in CONFIG_DIR.glob("*.yaml")))
     p.add_argument("--config", default="prox",
-                   help="rgb | prox | smplifyd | proxd | FILE.yaml (default prox)")
+                   help=f"{builtin} | FILE.yaml (default prox)")
     p.add_argument("--frames", type=int, help="fit only the first N frames")
     p.add_argument("--sequence", action="store_true",
                    help="warm-start each frame from the previous fit")

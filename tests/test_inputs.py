@@ -120,3 +120,17 @@ def test_config_inherits_from_its_base(tmp_path):
         load_config(loop)
     assert not load_config("prox-no-swaps").swap_sides
     assert not load_config("prox-no-scale-search").scale_search
+
+
+def test_fit_help_lists_every_built_in_configuration():
+    import os
+    import subprocess
+    import sys
+
+    from prox_engine.config import CONFIG_DIR
+
+    run = subprocess.run([sys.executable, "-m", "prox_engine.cli", "fit", "--help"],
+                         capture_output=True, text=True, check=True,
+                         env={**os.environ, "COLUMNS": "400"})
+    for path in CONFIG_DIR.glob("*.yaml"):
+        assert path.stem in run.stdout, path.stem
