@@ -13,7 +13,7 @@ from fastapi.concurrency import run_in_threadpool
 from .errors import install_handlers
 from .jobs import JobStore
 from .limits import BodySizeLimit
-from .routes import health, jobs, reports
+from .routes import docs, health, jobs, reports
 from .settings import Settings
 from .storage import LocalStorage
 
@@ -43,7 +43,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         reaper.cancel()
 
-    app = FastAPI(title="prox", version="1", lifespan=lifespan,
+    app = FastAPI(title="prox", version="1", lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Fit 3D human bodies to OpenPose keypoints inside scanned "
                               "scenes (PROX). Submit a zip in the PROX layout, follow the "
                               "job, download the fitted meshes and parameters.")
@@ -55,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(jobs.router)
     app.include_router(reports.router)
     app.include_router(health.router)
+    docs.install(app)
     return app
 
 

@@ -26,8 +26,15 @@ class ApiClient:
                                                     "application/zip")})
         return self._json(answer)
 
-    def job(self, job_id: str) -> dict:
-        return self._json(self.http.get(f"/v1/jobs/{job_id}"))
+    def job(self, job_id: str, patience: float = 120.0) -> dict:
+        """The job's status; while the service answers 503 (its job store down), ask again
+        after its Retry-After, for up to ``patience`` seconds."""
+        deadline = time.monotonic() + patience
+        while True:
+            answer = self.http.get(f"/v1/jobs/{job_id}")
+            if answer.status_code != 503 or time.monotonic() > deadline:
+                return self._json(answer)
+            time.sleep(float(answer.headers.get("retry-after", "1")))
 
     def wait(self, job_id: str, timeout: float = 3600.0, poll: float = 1.0,
              on_update: Callable[[dict], None] | None = None) -> dict:

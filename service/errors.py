@@ -4,8 +4,13 @@ from __future__ import annotations
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel
+from redis.exceptions import RedisError
 from starlette.exceptions import HTTPException
+
+RETRY_AFTER_S = 5  # what a client told the job store is down should wait
 
 
 class ApiError(Exception):
@@ -27,6 +32,32 @@ class ApiError(Exception):
         return JSONResponse(self.body(), status_code=self.status, headers=self.headers)
 
 
+class ErrorBody(BaseModel):
+    """What every error answer holds."""
+
+    detail: str
+    file: str | None = None  # the file of the upload at fault
+    problem: str | None = None  # what is wrong with it
+
+
+MEANING = {
+    400: "the upload is not a valid, safe zip (a bad entry name, a link, encryption, ...)",
+    401: "no bearer token, or one this service does not know",
+    404: "no such job among the caller's (another owner's job reads the same)",
+    409: "the job is not in a state that allows this (e.g. results of an unfinished job)",
+    410: "the job's results are no longer in storage",
+    413: "the upload, or what it decompresses to, is over a limit",
+    422: "invalid options, or a dataset the engine cannot read (the file is named)",
+    503: "the job store is unreachable; retry after the Retry-After header's seconds",
+}
+
+
+def documented(*statuses: int) -> dict[int | str, dict]:
+    """OpenAPI ``responses`` entries for error statuses, all with :class:`ErrorBody`."""
+    return {status: {"model": ErrorBody, "description": MEANING[status]}
+            for status in statuses}
+
+
 def upload_too_large(limit: int) -> ApiError:
     return ApiError(413, f"upload larger than the limit of {limit >> 20} MB")
 
@@ -35,6 +66,18 @@ def install_handlers(app: FastAPI, max_upload_bytes: int) -> None:
     @app.exception_handler(ApiError)
     async def api_error(request: Request, exc: ApiError) -> Response:
         return exc.response()
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError) -> Response:
+        problems = "; ".join(
+            f"{'.'.join(str(part) for part in error['loc'])}: {error['msg']}"
+            for error in exc.errors())
+        return ApiError(422, f"invalid request ({problems})").response()
+
+    @app.exception_handler(RedisError)
+    async def store_down(request: Request, exc: RedisError) -> Response:
+        return ApiError(503, "the job store is unreachable; try again shortly",
+                        headers={"Retry-After": str(RETRY_AFTER_S)}).response()
 
     @app.exception_handler(HTTPException)
     async def http_error(request: Request, exc: HTTPException) -> Response:

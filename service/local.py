@@ -3,6 +3,7 @@ as child processes. Used by ``prox serve``, ``prox demo``, the tests and the loa
 from __future__ import annotations
 
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -40,6 +41,7 @@ class LocalStack:
         self.port = port or free_port()
         self.extra_env = env or {}
         self.redis: subprocess.Popen | None = None
+        self.redis_port: int | None = None
         self.api: subprocess.Popen | None = None
         self.workers: list[subprocess.Popen] = []
 
@@ -73,12 +75,31 @@ class LocalStack:
             self.stop()
             raise
 
-    def add_worker(self) -> subprocess.Popen:
-        name = f"worker-{len(self.workers)}"
-        worker = self._spawn(name, [sys.executable, "-m", "worker", "--name",
-                                    f"{name}-{self.port}"], self._service_env())
-        self.workers.append(worker)
+    def add_worker(self, slot: int | None = None) -> subprocess.Popen:
+        """Start a worker (in ``slot`` of :attr:`workers`, replacing what was there) under
+        a fresh name: Redis refuses a name whose last owner has not yet expired."""
+        slot = len(self.workers) if slot is None else slot
+        worker = self._spawn(f"worker-{slot}", [
+            sys.executable, "-m", "worker", "--name",
+            f"worker-{slot}-{self.port}-{secrets.token_hex(3)}"], self._service_env())
+        if slot == len(self.workers):
+            self.workers.append(worker)
+        else:
+            self.workers[slot] = worker
         return worker
+
+    def supervise(self) -> list[str]:
+        """Restart whatever of Redis (same port and data) and the workers has exited;
+        returns what was restarted. The API is not restarted: its exit ends the stack."""
+        restarted = []
+        if self.redis is not None and self.redis.poll() is not None:
+            self._start_redis()
+            restarted.append("redis")
+        for slot, worker in enumerate(self.workers):
+            if worker.poll() is not None:
+                self.add_worker(slot)
+                restarted.append(f"worker-{slot}")
+        return restarted
 
     def stop(self) -> None:
         """Workers first (a warm shutdown lets a running frame end), then API, then Redis."""
@@ -111,13 +132,25 @@ class LocalStack:
         if server is None:
             raise RuntimeError("redis-server not found: install Debian's redis-server "
                                "(`make setup` does) or give a Redis URL (PROX_REDIS_URL)")
-        port = free_port()
+        port = self.redis_port or free_port()
         data = self.root / "redis"
         data.mkdir(parents=True, exist_ok=True)
+        # Append-only persistence, as in docker/compose.yaml: a restarted Redis still has
+        # every job record and queued job.
         self.redis = self._spawn("redis", [server, "--port", str(port), "--bind", "127.0.0.1",
-                                           "--save", "", "--appendonly", "no",
-                                           "--dir", str(data)])
+                                           "--save", "", "--appendonly", "yes",
+                                           "--appendfsync", "everysec", "--dir", str(data)])
+        self.redis_port = port
         self.redis_url = f"redis://127.0.0.1:{port}/0"
+
+    def restart_redis(self, down_s: float = 0.0) -> None:
+        """Kill this stack's Redis (SIGKILL: no goodbye) and start it again on the same port
+        and data after ``down_s`` seconds (the load check's outage)."""
+        if self.redis is None:
+            raise RuntimeError("this stack uses an external Redis")
+        _stop(self.redis, signal.SIGKILL)
+        time.sleep(down_s)
+        self._start_redis()
 
     def _wait_healthy(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout

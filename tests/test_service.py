@@ -8,8 +8,11 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
 import stat
+import subprocess
+import sys
 import time
 import zipfile
 from pathlib import Path
@@ -60,8 +63,9 @@ def submit(http: httpx.Client, archive: Path | bytes, **form: str) -> httpx.Resp
 def wait(http: httpx.Client, job_id: str, until, timeout: float = 300) -> dict:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        job = http.get(f"/v1/jobs/{job_id}").json()
-        if until(job):
+        answer = http.get(f"/v1/jobs/{job_id}")
+        job = answer.json()
+        if answer.status_code != 503 and until(job):  # 503: Redis down, ask again
             return job
         time.sleep(0.2)
     raise AssertionError(f"job {job_id} never reached the state; last: {job}")
@@ -101,7 +105,12 @@ def test_health_and_docs(stack):
     assert {"/v1/jobs", "/v1/jobs/{job_id}", "/v1/jobs/{job_id}/results",
             "/v1/jobs/{job_id}/frames/{frame}/mesh", "/v1/jobs/{job_id}/frames/{frame}/params",
             "/healthz"} <= set(spec["paths"])
-    assert httpx.get(f"{stack.url}/docs").status_code == 200
+    docs = httpx.get(f"{stack.url}/docs")
+    assert docs.status_code == 200
+    assets = re.findall(r'(?:src|href)="([^"]+)"', docs.text)
+    assert len(assets) == 3 and not re.search(r"https?://", docs.text)  # no CDN
+    for asset in assets:
+        assert httpx.get(f"{stack.url}{asset}").status_code == 200, asset
 
 
 def test_health_does_not_disclose_where_redis_is(unused_port):
@@ -195,7 +204,7 @@ def check_report_access(stack: LocalStack, job: dict, frame: str) -> None:
     # A wrong key (ASCII or not, query or cookie) reads as an unknown job: same 404 body.
     unknown = f"{stack.url}/v1/jobs/{'0' * 32}/report/"
     for attempt in ({"params": {"key": "0" * 32}}, {"params": {"key": "é"}},
-                    {"cookies": {"prox_report": "é"}}):
+                    {"headers": {"cookie": "prox_report=é".encode()}}):
         known = httpx.get(f"{base}/", **attempt)
         other = httpx.get(unknown, **attempt)
         assert known.status_code == other.status_code == 404, (attempt, known.text)
@@ -280,6 +289,52 @@ def test_a_frame_without_people_is_skipped_and_reported(stack, dataset_zip):
     [skipped] = job["errors"]
     assert skipped["recording"] == REC
     assert skipped["error"] == f"{empty}: 'people' is empty: nobody detected in this frame"
+
+
+def test_scratch_of_killed_horses_is_cleaned_and_a_job_deleted_as_it_starts(stack, tmp_path):
+    """A worker removes the scratch folders dead work-horses left (not those of jobs
+    running on this host), and a job deleted before its horse reads it aborts cleanly (it
+    was a TypeError on None)."""
+    import socket
+    import tempfile
+
+    from service.jobs import JobOptions, JobStore
+    from service.settings import Settings
+    from service.storage import LocalStorage
+    from worker.tasks import JobAborted, _Heartbeat, _run, clean_scratch
+
+    settings = Settings(redis_url=stack.redis_url, queue="nobody-listens",
+                        storage_dir=tmp_path / "storage")
+    store = JobStore(settings)
+    running_id, gone_id = store.new_id(), store.new_id()
+    owner = "nobody-with-a-token"  # these records stay out of the API users' listings
+    store.create(running_id, owner, JobOptions(config="rgb"), {REC: ["f"]}, 1)
+    store.start(running_id, 1, f"{socket.gethostname()}:{os.getpid()}")
+    live = Path(tempfile.mkdtemp(prefix=f"prox-job-{running_id}-"))
+    stale = Path(tempfile.mkdtemp(prefix=f"prox-job-{gone_id}-"))
+    assert stale in clean_scratch(store)
+    assert live.is_dir() and not stale.exists()
+    assert clean_scratch(store, running_id) == [live] and not live.exists()
+    assert store.fail(running_id, 1, "test over") and store.delete(running_id)
+
+    store.create(gone_id, owner, JobOptions(config="rgb"), {REC: ["f"]}, 1)
+    assert store.cancel(gone_id) and store.delete(gone_id)
+    with pytest.raises(JobAborted):
+        _run(store, LocalStorage(settings.storage_dir), settings, gone_id, 1, tmp_path,
+             _Heartbeat(store, gone_id, 1))
+
+
+def test_schemathesis_finds_no_server_error_and_no_undocumented_status(stack):
+    """Schemathesis generates requests for every operation of /openapi.json (its coverage
+    and fuzzing phases, bounded) against the live app and its real Redis."""
+    run = subprocess.run(
+        [str(Path(sys.executable).parent / "schemathesis"), "run", f"{stack.url}/openapi.json",
+         "--checks", "not_a_server_error,status_code_conformance", "--max-examples", "30",
+         "--phases", "coverage,fuzzing", "--continue-on-failure", "--request-timeout", "60",
+         "-H", f"Authorization: Bearer {TOKENS['alice']}"],
+        capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stdout[-6000:] + run.stderr[-2000:]
+    assert re.search(r"\d+ generated, \d+ passed", run.stdout), run.stdout[-2000:]
 
 
 # ---------------------------------------------------------------------------- auth
@@ -441,6 +496,41 @@ def test_a_job_whose_worker_vanished_is_reaped_and_retried(stack, dataset_zip):
     stack.workers[0].wait()
     job = wait(http, job["id"], lambda j: j["attempt"] == 2, timeout=60)
     assert job["status"] == "queued" and "without a heartbeat" in job["error"]
-    stack.add_worker()
+    # As prox serve does: the dead worker is replaced at once, under a fresh name (its
+    # old one is still registered in Redis, and RQ refuses a live-looking name).
+    assert stack.supervise() == ["worker-0"]
     job = wait(http, job["id"], ended, timeout=300)
     assert job["status"] == "finished" and job["attempt"] == 2 and job["error"] is None
+
+
+def test_a_redis_restart_loses_no_job_and_the_api_says_503_meanwhile(stack, dataset_zip):
+    """Redis killed mid-job: every /v1 route is a JSON 503 with Retry-After while it is
+    down; restarted from its append-only file, it still has both jobs, the busy worker
+    rides out the outage, and each job ends finished exactly once."""
+    http = client(stack)
+    running_job = submit(http, dataset_zip, config="rgb", frames="2").json()
+    queued_job = submit(http, dataset_zip, config="rgb", frames="1").json()
+    wait(http, running_job["id"], running)
+    time.sleep(1.5)  # append-only file synced every second
+    alive = [w for w in stack.workers if w.poll() is None]
+    stack.redis.kill()
+    stack.redis.wait()
+    for path in ("/v1/jobs", f"/v1/jobs/{running_job['id']}"):
+        down = http.get(path)
+        assert down.status_code == 503, down.text
+        assert down.headers["retry-after"] == "5" and "unreachable" in down.json()["detail"]
+    stored = set(os.listdir(stack.storage_dir / "jobs"))
+    refused = submit(http, dataset_zip, config="rgb", frames="1")
+    assert refused.status_code == 503, refused.text
+    assert set(os.listdir(stack.storage_dir / "jobs")) == stored  # its upload was removed
+    time.sleep(3)
+    stack.restart_redis()
+    for job in (running_job, queued_job):
+        final = wait(http, job["id"], ended, timeout=300)
+        assert final["status"] == "finished", final
+        assert final["progress"]["frames_done"] == final["progress"]["frames_total"]
+    assert alive and all(w.poll() is None for w in alive)  # the workers rode it out
+    deadline = time.monotonic() + 60
+    while httpx.get(f"{stack.url}/healthz").json()["workers"] < 1:
+        assert time.monotonic() < deadline, "no worker came back"
+        time.sleep(1)

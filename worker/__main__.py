@@ -9,16 +9,22 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import secrets
+import socket
 import sys
+import time
 
 from redis import Redis
+from redis.exceptions import ConnectionError as RedisConnectionError
 from rq import Worker
 
 from service.jobs import JobStore
 from service.settings import Settings
+from worker.tasks import clean_scratch
 
 # A worker that stops heart-beating drops out of /healthz after this long.
 WORKER_TTL_S = 60
+MAX_WAIT_S = 30  # the longest pause between attempts to reach Redis again
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,14 +42,30 @@ def main(argv: list[str] | None = None) -> int:
         how = (f"signal {os.WTERMSIG(ret_val)}" if os.WIFSIGNALED(ret_val)
                else f"exit status {os.waitstatus_to_exitcode(ret_val)}")
         store.worker_lost(job_id, attempt, f"its worker process died ({how})")
+        clean_scratch(store, job_id)
 
     import torch  # noqa: F401  imported, never run, in the parent: forks start warm
 
-    worker = Worker([settings.queue], name=args.name,
-                    connection=Redis.from_url(settings.redis_url), worker_ttl=WORKER_TTL_S,
-                    work_horse_killed_handler=horse_killed)
-    worker.work(burst=args.burst, max_jobs=args.max_jobs, logging_level="INFO")
-    return 0
+    try:
+        for folder in clean_scratch(store):
+            logging.info("removed %s, left by a killed work-horse", folder)
+    except RedisConnectionError as exc:  # cleaned at the next start instead
+        logging.warning("Redis unreachable (%s): scratch folders not checked", exc)
+
+    wait = 1.0
+    while True:  # ride out Redis outages: a busy RQ worker dies when Redis drops
+        # A fresh name each time: Redis refuses one whose last owner has not expired.
+        name = f"{args.name or socket.gethostname()}-{os.getpid()}-{secrets.token_hex(3)}"
+        try:
+            worker = Worker([settings.queue], name=name,
+                            connection=Redis.from_url(settings.redis_url),
+                            worker_ttl=WORKER_TTL_S, work_horse_killed_handler=horse_killed)
+            worker.work(burst=args.burst, max_jobs=args.max_jobs, logging_level="INFO")
+            return 0
+        except RedisConnectionError as exc:
+            logging.warning("Redis unreachable (%s); starting again in %.0f s", exc, wait)
+            time.sleep(wait)
+            wait = min(2 * wait, MAX_WAIT_S)
 
 
 if __name__ == "__main__":

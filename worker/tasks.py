@@ -22,6 +22,26 @@ from service.storage import LocalStorage, Storage, zip_tree
 from service.upload import UploadError, extract_upload
 
 HEARTBEAT_S = 5.0
+SCRATCH_PREFIX = "prox-job-"  # a job attempt's scratch folder: prox-job-<id>-<random>
+
+
+def clean_scratch(store: JobStore, job_id: str | None = None) -> list[Path]:
+    """Remove the scratch folders a killed work-horse left behind: those of ``job_id``, or
+    (at start-up) every one whose job is not running in a live process on this host."""
+    host = socket.gethostname()
+    removed = []
+    for folder in Path(tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}{job_id or ''}*"):
+        owner = folder.name.removeprefix(SCRATCH_PREFIX).rsplit("-", 1)[0]
+        if job_id is None:
+            record = store.get(owner)
+            where = (record or {}).get("worker") or ""
+            name, _, pid = where.rpartition(":")
+            if (record is not None and record["status"] == "running" and name == host
+                    and pid.isdigit() and Path(f"/proc/{pid}").exists()):
+                continue
+        shutil.rmtree(folder, ignore_errors=True)
+        removed.append(folder)
+    return removed
 
 
 class JobAborted(Exception):
@@ -50,7 +70,7 @@ def run_job(job_id: str, attempt: int) -> str:
         return "skipped: cancelled or superseded"
     heartbeat = _Heartbeat(store, job_id, attempt)
     heartbeat.start()
-    scratch = Path(tempfile.mkdtemp(prefix=f"prox-job-{job_id}-"))
+    scratch = Path(tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{job_id}-"))
     try:
         return _run(store, LocalStorage(settings.storage_dir), settings, job_id, attempt,
                     scratch, heartbeat)
@@ -97,6 +117,8 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     from prox_engine.pipeline import fit_recording
 
     record = store.get(job_id)
+    if record is None:  # deleted since it started
+        raise JobAborted
     options = JobOptions(**record["options"])
     started = time.perf_counter()
     torch.set_num_threads(int(os.environ.get("PROX_THREADS", "1")))

@@ -13,14 +13,14 @@ from fastapi.responses import StreamingResponse
 from prox_engine.config import BODY_MODELS, CONFIG_DIR, GENDERS, load_config
 
 from ..deps import OwnerDep, SettingsDep, StorageDep, StoreDep, report_key
-from ..errors import ApiError
+from ..errors import ApiError, documented
 from ..jobs import TERMINAL, JobOptions
 from ..schemas import JobPage, JobView, job_view
 from ..settings import Settings
 from ..storage import Storage
 from ..upload import UploadError, validate_upload
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=documented(401, 422, 503))
 CONFIGS = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
 _CHUNK = 1 << 20
 MAX_OFFSET = 10 ** 9  # far past any listing, well inside Redis's integer range
@@ -43,7 +43,7 @@ def _own_job(store, job_id: str, owner: str) -> dict:
     return record
 
 
-@router.post("", status_code=202, response_model=JobView,
+@router.post("", status_code=202, response_model=JobView, responses=documented(400, 413),
              summary="Submit a sequence (a zip in the PROX layout) for fitting")
 def submit(request: Request, response: Response, owner: OwnerDep, settings: SettingsDep,
            store: StoreDep, storage: StorageDep,
@@ -81,7 +81,11 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
         size = Path(upload.name).stat().st_size
     options = JobOptions(config, frames, sequence, report, render_every, model, gender,
                          per_recording, hand_pca)
-    record = store.create(job_id, owner, options, summary.recordings, size)
+    try:
+        record = store.create(job_id, owner, options, summary.recordings, size)
+    except BaseException:  # e.g. Redis down (a 503): no job, so no stored upload either
+        storage.delete_prefix(f"jobs/{job_id}")
+        raise
     view = _view(record, request, settings)
     response.headers["Location"] = view.links["self"]
     return view
@@ -130,7 +134,8 @@ def list_jobs(request: Request, owner: OwnerDep, store: StoreDep, settings: Sett
                    limit=limit, next=following)
 
 
-@router.get("/{job_id}", response_model=JobView, summary="Status, progress and timings")
+@router.get("/{job_id}", response_model=JobView, responses=documented(404),
+            summary="Status, progress and timings")
 def get_job(job_id: str, request: Request, owner: OwnerDep, store: StoreDep,
             settings: SettingsDep) -> JobView:
     return _view(_own_job(store, job_id, owner), request, settings)
@@ -146,7 +151,8 @@ def _finished(store, job_id: str, owner: str) -> dict:
 
 @router.get("/{job_id}/results", summary="A zip of the results directory",
             response_class=StreamingResponse,
-            responses={200: {"content": {"application/zip": {}}}})
+            responses={200: {"content": {"application/zip": {}}},
+                       **documented(404, 409, 410)})
 def results(job_id: str, owner: OwnerDep, store: StoreDep,
             storage: StorageDep) -> StreamingResponse:
     _finished(store, job_id, owner)
@@ -184,7 +190,8 @@ RecordingQuery = Annotated[str | None, Query(description="needed when several re
 
 @router.get("/{job_id}/frames/{frame}/mesh", summary="One frame's fitted mesh (PLY, camera "
             "frame)", response_class=StreamingResponse,
-            responses={200: {"content": {"application/octet-stream": {}}}})
+            responses={200: {"content": {"application/octet-stream": {}}},
+                       **documented(404, 409)})
 def frame_mesh(job_id: str, frame: str, owner: OwnerDep, store: StoreDep, storage: StorageDep,
                recording: RecordingQuery = None) -> StreamingResponse:
     key = _frame_key(store, storage, job_id, owner, frame, recording, "mesh")
@@ -194,7 +201,7 @@ def frame_mesh(job_id: str, frame: str, owner: OwnerDep, store: StoreDep, storag
 
 
 @router.get("/{job_id}/frames/{frame}/params", summary="One frame's fitted parameters, "
-            "losses and statistics")
+            "losses and statistics", responses=documented(404, 409))
 def frame_params(job_id: str, frame: str, owner: OwnerDep, store: StoreDep,
                  storage: StorageDep, recording: RecordingQuery = None) -> dict:
     key = _frame_key(store, storage, job_id, owner, frame, recording, "params")
@@ -202,7 +209,8 @@ def frame_params(job_id: str, frame: str, owner: OwnerDep, store: StoreDep,
         return json.load(handle)
 
 
-@router.delete("/{job_id}", status_code=204, responses={202: {"model": JobView}},
+@router.delete("/{job_id}", status_code=204,
+               responses={202: {"model": JobView}, **documented(404)},
                summary="Cancel a queued or running job; delete a finished one and its files")
 def delete_job(job_id: str, request: Request, owner: OwnerDep, store: StoreDep,
                storage: StorageDep, settings: SettingsDep) -> Response:

@@ -15,7 +15,7 @@ from fastapi.responses import RedirectResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials
 
 from ..deps import SettingsDep, StorageDep, StoreDep, bearer, get_owner, report_key
-from ..errors import ApiError
+from ..errors import ApiError, documented
 
 router = APIRouter(prefix="/v1/jobs", tags=["reports"])
 COOKIE = "prox_report"
@@ -28,6 +28,7 @@ def report_root(job_id: str, request: Request) -> RedirectResponse:
 
 
 @router.get("/{job_id}/report/{path:path}", response_class=StreamingResponse,
+            responses=documented(401, 404, 409, 422, 503),
             summary="The job's HTML reports: open links.report in a browser")
 def report_file(job_id: str, path: str, request: Request, settings: SettingsDep,
                 store: StoreDep, storage: StorageDep,
