@@ -5,24 +5,36 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 export PROX_THREADS ?= 1
-# Debian packages: Redis for the job queue (tests start their own server), OSMesa for
-# renders on the CPU; Chromium and tidy only for the report tests.
-APT_PACKAGES := redis-server libosmesa6 chromium tidy
+# Debian packages: Redis for the job queue, OSMesa for renders on the CPU; Chromium and
+# tidy only for the report tests (`make test`).
+APT_RUNTIME := redis-server libosmesa6
+APT_TEST    := chromium tidy
 SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
+# PyTorch's CPU wheels (the default index has the CUDA build: gigabytes of nvidia
+# packages); when that index cannot be reached in 10 s, the configured index is used.
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+# What apt-get prints goes to a log, shown only when it fails.
+apt_install = missing=$$(for p in $(1); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null \
+	  | grep -q '^install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then echo "installing Debian packages:" $$missing; \
+	  { $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install \
+	  -y -qq --no-install-recommends $$missing; } >/tmp/prox-apt.log 2>&1 \
+	  || { cat /tmp/prox-apt.log; exit 1; }; fi
 
-.PHONY: system setup demo serve test bench loadcheck clean
+.PHONY: system system-test setup demo serve test bench loadcheck clean
 
 system:
-	@missing=$$(for p in $(APT_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null \
-	  | grep -q '^install ok installed' || echo $$p; done); \
-	if [ -n "$$missing" ]; then $(SUDO) apt-get update -qq && \
-	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends \
-	  $$missing; fi
+	@$(call apt_install,$(APT_RUNTIME))
+
+system-test:
+	@$(call apt_install,$(APT_TEST))
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet torch==2.13.0
+	$(BIN)/pip install --quiet --timeout 10 --retries 0 --index-url $(TORCH_INDEX) \
+	  torch==2.13.0 2>/dev/null || $(BIN)/pip install --quiet torch==2.13.0
+	$(BIN)/python -c "import torch; assert torch.version.cuda is None, 'a CUDA torch'"
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
@@ -37,10 +49,10 @@ demo: setup
 serve: setup
 	$(BIN)/prox serve
 
-test: setup
+test: setup system-test
 	$(BIN)/python -m pytest -q tests
 
-# The full benchmark (8 configurations x 7 kinds x 6 frames, about an hour in one
+# The full benchmark (9 configurations x 7 kinds x 6 frames, about an hour in one
 # process; not part of the tests).
 bench: setup
 	$(BIN)/python -m benchmarks --seed 1 --frames 6 --out bench_output
