@@ -34,8 +34,8 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet --timeout 10 --retries 0 --index-url $(TORCH_INDEX) \
 	  torch==2.13.0 2>/dev/null || $(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/python -c "import torch; assert torch.version.cuda is None, 'a CUDA torch'"
 	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/python -c "import torch; assert torch.version.cuda is None, 'a CUDA torch'"
 	touch $(STAMP)
 
 setup: system $(STAMP)
