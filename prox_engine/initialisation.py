@@ -1,8 +1,9 @@
 """Starting bodies for a fit: each starting posture of the body model in a set of root
 orientations (upright and turned about world up, or lying on the back, a side or the front
 with the head toward any horizontal direction), each moved rigidly (root rotation and
-translation only) onto the keypoints; per frame the candidate that explains the body
-keypoints best is kept.
+translation only) onto the keypoints; per frame the candidates that explain the body
+keypoints best are kept (the best, or the few best distinct ones, which the fitter then
+fits side by side to choose between them).
 
 Moving a posture rigidly moves its keypoints rigidly, so every candidate is fitted from one
 evaluation of the body per posture: hundreds of candidates cost less than one body stage.

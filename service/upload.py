@@ -1,10 +1,11 @@
 """Checking an uploaded zip of a PROX-layout dataset, and extracting it safely.
 
-:func:`validate_upload` reads the zip's central directory and the keypoint files of the frames
-to be fitted, never extracting; :func:`extract_upload` repeats the safety and size checks
-before writing anything. A rejection raises :class:`UploadError` with an HTTP status: 400 for
-a corrupt, encrypted or unsafe zip, 413 for one too large, 422 for a wrong layout or a
-malformed keypoint file.
+:func:`validate_upload` reads the zip's central directory, the calibration, each scene's mesh
+and camera pose, and the keypoint files of the frames to be fitted, never extracting;
+:func:`extract_upload` repeats the safety and size checks and writes only the files a fit
+reads. A rejection raises :class:`UploadError` with an HTTP status: 400 for a corrupt,
+encrypted or unsafe zip (or unsafe recording and frame names), 413 for one too large, 422
+for a wrong layout or a file the engine cannot read.
 """
 from __future__ import annotations
 
