@@ -5,19 +5,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from typing import AsyncIterator
 
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
+from redis.exceptions import RedisError
 
 from .errors import install_handlers
 from .jobs import JobStore
 from .limits import BodySizeLimit
 from .routes import docs, health, jobs, reports
 from .settings import Settings
-from .storage import LocalStorage
+from .storage import LocalStorage, Storage
 
 log = logging.getLogger("prox.service")
+ORPHAN_AGE_S = 600  # job files without a record are swept at start-up once this old
 
 
 async def _reap_forever(store: JobStore, interval: float) -> None:
@@ -31,6 +34,19 @@ async def _reap_forever(store: JobStore, interval: float) -> None:
         await asyncio.sleep(interval)
 
 
+def sweep_orphans(store: JobStore, storage: Storage, older_than_s: float = ORPHAN_AGE_S
+                  ) -> list[str]:
+    """Delete the files of jobs that have no record (a submission cut off between storing
+    its upload and recording the job), once they are ``older_than_s`` (younger ones may be
+    a submission in flight on another API process); returns their ids."""
+    removed = []
+    for job_id, changed in storage.folders("jobs"):
+        if time.time() - changed > older_than_s and store.get(job_id) is None:
+            storage.delete_prefix(f"jobs/{job_id}")
+            removed.append(job_id)
+    return removed
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     if not settings.tokens:
@@ -39,6 +55,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        try:
+            for job_id in await run_in_threadpool(sweep_orphans, app.state.store,
+                                                  app.state.storage):
+                log.warning("removed the files of job %s, which has no record", job_id)
+        except RedisError:  # Redis down: the next start sweeps
+            log.exception("sweeping orphaned job files failed")
         reaper = asyncio.create_task(_reap_forever(app.state.store, settings.reap_interval_s))
         yield
         reaper.cancel()

@@ -51,6 +51,11 @@ class Storage(ABC):
     def delete_prefix(self, prefix: str) -> None:
         """Delete every key under ``prefix/``."""
 
+    @abstractmethod
+    def folders(self, prefix: str) -> list[tuple[str, float]]:
+        """The names directly under ``prefix/`` that hold keys, with when each last
+        changed (seconds since the epoch)."""
+
 
 def _check_key(key: str) -> str:
     parts = key.split("/")
@@ -108,6 +113,11 @@ class LocalStorage(Storage):
 
     def delete_prefix(self, prefix: str) -> None:
         shutil.rmtree(self.path(prefix), ignore_errors=True)
+
+    def folders(self, prefix: str) -> list[tuple[str, float]]:
+        folder = self.path(prefix)
+        return ([(p.name, p.stat().st_mtime) for p in folder.iterdir() if p.is_dir()]
+                if folder.is_dir() else [])
 
 
 def zip_tree(src: Path, archive: Path) -> None:

@@ -9,6 +9,7 @@ import io
 import json
 import os
 import re
+import shutil
 import signal
 import stat
 import subprocess
@@ -335,6 +336,30 @@ def test_schemathesis_finds_no_server_error_and_no_undocumented_status(stack):
         capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stdout[-6000:] + run.stderr[-2000:]
     assert re.search(r"\d+ generated, \d+ passed", run.stdout), run.stdout[-2000:]
+
+
+def test_an_api_start_sweeps_job_files_without_a_record(stack):
+    """Files of a submission cut off before its job was recorded are removed when an API
+    process starts, once old enough not to be a submission in flight; jobs' files stay."""
+    from fastapi.testclient import TestClient
+
+    from service.app import ORPHAN_AGE_S, create_app
+    from service.settings import Settings
+
+    jobs = stack.storage_dir / "jobs"
+    kept = set(os.listdir(jobs))
+    old, young = jobs / ("0" * 31 + "1"), jobs / ("0" * 31 + "2")
+    for folder in (old, young):
+        folder.mkdir()
+        (folder / "upload.zip").write_bytes(b"PK")
+    stale = time.time() - ORPHAN_AGE_S - 60
+    os.utime(old, (stale, stale))
+    settings = Settings(redis_url=stack.redis_url, storage_dir=stack.storage_dir,
+                        tokens={"t": "someone"})
+    with TestClient(create_app(settings)):
+        pass
+    assert set(os.listdir(jobs)) == kept | {young.name}
+    shutil.rmtree(young)
 
 
 # ---------------------------------------------------------------------------- auth
