@@ -26,6 +26,7 @@ BASELINE_YELLOW = (0.96, 0.76, 0.12)
 PENETRATING_RED = (0.90, 0.08, 0.08)
 CONTACT_BLUE = (0.10, 0.35, 0.95)
 SCENE_COLOUR = (0.66, 0.62, 0.56)
+FLAG_OPACITY = 0.85  # flagged vertices over whatever hides them
 VIEWS = ("camera", "top", "side")  # the scene views; "overlay" is the camera's over the image
 FOV_Y = np.radians(45.0)  # top and side views
 _OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -49,6 +50,21 @@ class BodyMesh:
             colours[np.asarray(self.contact, dtype=int), :3] = CONTACT_BLUE
         if self.penetrating is not None:
             colours[np.asarray(self.penetrating, dtype=int), :3] = PENETRATING_RED
+        mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_colors=colours, process=False)
+        return pyrender.Mesh.from_trimesh(mesh, smooth=True)
+
+    @cached_property
+    def flag_mesh(self) -> pyrender.Mesh | None:
+        """The flagged vertices in their legend colours and the rest black, for the pass
+        that shows them through the scene; None when nothing is flagged."""
+        flagged = [(ids, colour) for ids, colour in ((self.contact, CONTACT_BLUE),
+                                                     (self.penetrating, PENETRATING_RED))
+                   if ids is not None and len(ids)]
+        if not flagged:
+            return None
+        colours = np.tile([0.0, 0.0, 0.0, 1.0], (len(self.vertices), 1))
+        for ids, colour in flagged:
+            colours[np.asarray(ids, dtype=int), :3] = colour
         mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_colors=colours, process=False)
         return pyrender.Mesh.from_trimesh(mesh, smooth=True)
 
@@ -155,11 +171,25 @@ class SceneRenderer:
         self.renderer = pyrender.OffscreenRenderer(width, height)
 
     def render(self, view: str, bodies: list[BodyMesh]) -> np.ndarray:
-        """An RGB image (H, W, 3) uint8 of the bodies in the scene from ``view``."""
-        return self._draw(view, bodies, with_scene=True)[0]
+        """An RGB image (H, W, 3) uint8 of the bodies in the scene from ``view``, their
+        flagged vertices shown through the scene (penetrating ones are inside it, hidden
+        by the very surfaces they penetrate)."""
+        colour = self._draw(view, [b.mesh for b in bodies], with_scene=True)[0]
+        flagged = [b.flag_mesh for b in bodies if b.flag_mesh is not None]
+        if not flagged:
+            return colour
+        # Unlit, without the scene: the flags' exact legend colours wherever they project.
+        flat = self._draw(view, flagged, with_scene=False,
+                          flags=pyrender.RenderFlags.FLAT)[0].astype(int)
+        out = colour.astype(float)
+        for legend in (CONTACT_BLUE, PENETRATING_RED):
+            target = np.array(legend) * 255
+            mask = np.abs(flat - target).max(-1) < 60
+            out[mask] = (1 - FLAG_OPACITY) * out[mask] + FLAG_OPACITY * target
+        return out.round().astype(np.uint8)
 
-    def _draw(self, view: str, bodies: list[BodyMesh], with_scene: bool
-              ) -> tuple[np.ndarray, np.ndarray]:
+    def _draw(self, view: str, meshes: list[pyrender.Mesh], with_scene: bool,
+              flags: int = pyrender.RenderFlags.NONE) -> tuple[np.ndarray, np.ndarray]:
         """Colour (H, W, 3) and depth (H, W; 0 where nothing was drawn)."""
         v = self.views[view]
         self.camera_node.camera.fx, self.camera_node.camera.fy = v.fx, v.fy
@@ -169,10 +199,10 @@ class SceneRenderer:
         self.scene.set_pose(self.light, gl_pose)
         for name, node in self.scene_nodes.items():
             node.mesh.is_visible = with_scene and name == view
-        nodes = [self.scene.add(b.mesh) for b in bodies]
+        nodes = [self.scene.add(mesh) for mesh in meshes]
         try:
             # OSMesa has no alpha channel: the depth buffer tells what was drawn.
-            colour, depth = self.renderer.render(self.scene)
+            colour, depth = self.renderer.render(self.scene, flags=flags)
         finally:
             for node in nodes:
                 self.scene.remove_node(node)
@@ -190,7 +220,7 @@ class SceneRenderer:
             (round(w * scale), round(h * scale)), Image.BILINEAR))
         top, left = (self.height - resized.shape[0]) // 2, (self.width - resized.shape[1]) // 2
         canvas[top:top + resized.shape[0], left:left + resized.shape[1]] = resized
-        colour, depth = self._draw("camera", bodies, with_scene=False)
+        colour, depth = self._draw("camera", [b.mesh for b in bodies], with_scene=False)
         a = (depth[..., None] > 0) * alpha
         return (canvas * (1 - a) + colour * a).astype(np.uint8)
 

@@ -114,3 +114,32 @@ def test_overlay_draws_the_body_over_the_image(room):
     assert image[v, u, 0] > 100 and image[v, u, 2] < 120  # mostly the body
     assert tuple(image[v, u + 80]) == (0, 0, 200)  # the photograph, untouched
     assert tuple(image[5, 5]) == (255, 255, 255)  # the margin of a 4:3 image in 16:9
+
+
+def test_penetrating_vertices_show_through_the_surface_they_penetrate(room):
+    """A body sunk 40 cm into a block: its penetrating vertices are hidden by the block
+    itself, yet drawn red over it (they used to leave a dozen red pixels at most)."""
+    _, walls, _, camera, cam2world, bounds = room
+    block = trimesh.creation.box([1.2, 1.2, 0.4])
+    block.vertices += [0.0, 0.0, 0.2]
+    scene = trimesh.util.concatenate([walls, block])
+    body = trimesh.creation.box([0.5, 0.3, 1.8]).subdivide_to_size(0.05)
+    body.vertices += BODY_CENTRE
+    sunk = np.flatnonzero(body.vertices[:, 2] < 0.4)
+    renderer = SceneRenderer(scene.vertices, scene.faces, None, camera, cam2world, bounds,
+                             WIDTH, HEIGHT)
+    try:
+        plain = renderer.render("camera", [_yellow(body)])
+        flagged = renderer.render("camera", [_yellow(body, penetrating=sunk)])
+    finally:
+        renderer.close()
+
+    def red(image: np.ndarray) -> np.ndarray:
+        r, g, b = (image[..., i].astype(int) for i in range(3))
+        return (r > 150) & (g < 90) & (b < 90)
+
+    assert red(plain).sum() == 0
+    assert red(flagged).sum() > 500
+    # Above the block the body is visible and not flagged: still yellow.
+    u, v = _projected_centre(camera, cam2world)
+    assert _is_yellow(flagged[v, u]), flagged[v, u]
