@@ -2,6 +2,7 @@
 (HTML Tidy), every link and image resolving, and loading in headless Chromium."""
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -136,3 +137,20 @@ def test_names_from_uploads_never_become_a_link_scheme():
     hrefs = _Links()
     hrefs.feed(runs)
     assert "./javascript%3Aalert%28document.domain%29/report/index.html" in hrefs.links
+
+
+def test_pages_agree_on_penetration_and_label_the_losses(cli_fits):
+    """The index, the sequence page and the frame page state the same penetration share
+    (to 0.01 %: the sequence page said 0.0 % where the index said 0.04), and the per-frame
+    loss columns say that they are losses."""
+    out, _ = cli_fits["prox"]
+    report = out / REC / "report"
+    index = (out / "index.html").read_text()
+    sequence = (report / "index.html").read_text()
+    [frame] = sorted((report / "frames").glob("*.html"))[:1]
+    summary = json.loads((out / REC / "summary.json").read_text())
+    share = f"{summary['penetration']['mean_penetrating_share'] * 100:.2f}"
+    assert f"<td>{share}</td>" in index
+    assert f"<dd>{share} % of vertices on average" in sequence
+    assert re.search(r"<dd>\d+\.\d\d % of vertices, max depth", frame.read_text())
+    assert "<th>loss: data</th>" in sequence
