@@ -3,7 +3,6 @@ as child processes. Used by ``prox serve``, ``prox demo``, the tests and the loa
 from __future__ import annotations
 
 import os
-import secrets
 import shutil
 import signal
 import socket
@@ -76,12 +75,12 @@ class LocalStack:
             raise
 
     def add_worker(self, slot: int | None = None) -> subprocess.Popen:
-        """Start a worker (in ``slot`` of :attr:`workers`, replacing what was there) under
-        a fresh name: Redis refuses a name whose last owner has not yet expired."""
+        """Start a worker in ``slot`` of :attr:`workers` (replacing what was there; the
+        worker makes its name fresh, which Redis requires of a restarted one)."""
         slot = len(self.workers) if slot is None else slot
         worker = self._spawn(f"worker-{slot}", [
-            sys.executable, "-m", "worker", "--name",
-            f"worker-{slot}-{self.port}-{secrets.token_hex(3)}"], self._service_env())
+            sys.executable, "-m", "worker", "--name", f"worker-{slot}-{self.port}"],
+            self._service_env())
         if slot == len(self.workers):
             self.workers.append(worker)
         else:

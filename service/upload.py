@@ -259,25 +259,33 @@ def _check_layout(files: set[str], base: str, recordings: dict[str, list[str]]) 
         if not frames:
             raise UploadError(422, f"{base}keypoints/{rec}/",
                               f"no <frame>{KEYPOINT_SUFFIX} files in this recording")
-    needed = [f"{base}calibration/Color.json"]
-    for rec in recordings:
-        scene = Recording(Path(base), rec).scene_name
-        needed += [f"{base}scenes/{scene}.ply", f"{base}cam2world/{scene}.json"]
-    for name in needed:
+    for name in _shared_files(base, recordings):
         if name not in files:
             raise UploadError(422, name, f"missing: {LAYOUT}")
+
+
+def _shared_files(base: str, recordings: Iterable[str]
+                  ) -> dict[str, Callable[[Path, bytes], object]]:
+    """The files every fit of these recordings needs besides its frames (calibration, each
+    scene's mesh and camera pose), with the engine's reader of each."""
+    files: dict[str, Callable[[Path, bytes], object]] = {
+        f"{base}calibration/Color.json": load_calibration}
+    for rec in recordings:
+        scene = Recording(Path(base), rec).scene_name
+        files[f"{base}scenes/{scene}.ply"] = load_scene_mesh
+        files[f"{base}cam2world/{scene}.json"] = load_cam2world
+    return files
 
 
 def _read_by_fit(base: str, recordings: dict[str, list[str]]) -> Callable[[str], bool]:
     """Whether a member is read when fitting these recordings' frames and reporting on
     them: calibration, each scene's mesh, camera pose and PROX SDF, and per frame its
     keypoints and its depth, body-mask and colour images."""
-    shared = {f"{base}calibration/"}
+    shared = {f"{base}calibration/", *_shared_files(base, recordings)}
     frame_files: set[str] = set()
     for rec, frames in recordings.items():
         scene = Recording(Path(base), rec).scene_name
-        shared |= {f"{base}scenes/{scene}.ply", f"{base}cam2world/{scene}.json",
-                   f"{base}sdf/{scene}.json", f"{base}sdf/{scene}_sdf.npy"}
+        shared |= {f"{base}sdf/{scene}.json", f"{base}sdf/{scene}_sdf.npy"}
         for frame in frames:
             frame_files.add(f"{base}keypoints/{rec}/{frame}{KEYPOINT_SUFFIX}")
             frame_files |= {f"{base}recordings/{rec}/{kind}/{frame}" for kind in FRAME_FOLDERS}
@@ -305,12 +313,7 @@ def _check_shared(archive: zipfile.ZipFile, base: str, recordings: dict[str, lis
                   ) -> None:
     """422 unless the engine reads the calibration and each scene's mesh and camera pose
     (face indices in range, finite and sane coordinates, a rigid pose)."""
-    checks = {f"{base}calibration/Color.json": load_calibration}
-    for rec in recordings:
-        scene = Recording(Path(base), rec).scene_name
-        checks[f"{base}scenes/{scene}.ply"] = load_scene_mesh
-        checks[f"{base}cam2world/{scene}.json"] = load_cam2world
-    for name, load in checks.items():
+    for name, load in _shared_files(base, recordings).items():
         try:
             load(Path(name), _read(archive, name))
         except InputError as exc:
