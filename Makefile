@@ -21,7 +21,7 @@ apt_install = missing=$$(for p in $(1); do dpkg-query -W -f='$${Status}\n' $$p 2
 	  -y -qq --no-install-recommends $$missing; } >/tmp/prox-apt.log 2>&1 \
 	  || { cat /tmp/prox-apt.log; exit 1; }; fi
 
-.PHONY: system system-test setup demo serve test bench loadcheck clean
+.PHONY: system system-test setup viewer demo serve test bench loadcheck clean
 
 system:
 	@$(call apt_install,$(APT_RUNTIME))
@@ -38,7 +38,17 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -c "import torch; assert torch.version.cuda is None, 'a CUDA torch'"
 	touch $(STAMP)
 
-setup: system $(STAMP)
+# The reports' 3D viewer: three.js and our viewer code bundled by esbuild into one classic
+# script (pinned in viewer/package-lock.json; Debian's nodejs and npm when there is no npm).
+VIEWER_JS := viewer/dist/viewer.js
+$(VIEWER_JS): viewer/package.json viewer/package-lock.json viewer/src/viewer.js
+	@command -v npm >/dev/null || { $(call apt_install,nodejs npm); }
+	cd viewer && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error \
+	  && npm run build --silent
+
+viewer: $(VIEWER_JS)
+
+setup: system $(STAMP) $(VIEWER_JS)
 	$(BIN)/prox setup
 
 # Fits the bundled synthetic sequence through a local service (Redis, API, 2 workers).
@@ -62,4 +72,5 @@ loadcheck: setup
 	$(BIN)/python -m service.loadcheck --jobs 50 --workers 2 --out loadcheck_output
 
 clean:
-	rm -rf $(VENV) demo_output bench_output loadcheck_output .pytest_cache
+	rm -rf $(VENV) demo_output bench_output loadcheck_output .pytest_cache viewer/node_modules \
+	  viewer/dist

@@ -8,6 +8,7 @@ BodyIndex}/<frame>.{jpg,png}``. ``<Scene>`` is the recording name up to its firs
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +19,9 @@ from .errors import InputError
 
 KEYPOINT_SUFFIX = "_keypoints.json"
 MAX_COORDINATE = 1e4  # metres: a scanned room or its camera is never this far out
+KINECT_FPS = 30.0  # PROX's recordings, when frame names carry no time stamps
+# PROX frame names: s001_frame_00001__00.00.00.029 (frame number, then h.m.s.ms)
+_FRAME_TIME = re.compile(r"frame_(\d+)__(\d+)\.(\d+)\.(\d+)\.(\d+)$")
 
 
 @dataclass
@@ -70,6 +74,21 @@ class Recording:
         depth = self.recording_dir / "Depth" / f"{frame}.png"
         mask = self.recording_dir / "BodyIndex" / f"{frame}.png"
         return (depth, mask) if depth.exists() and mask.exists() else None
+
+
+def frame_rate(frames: list[str]) -> float:
+    """Frames per second of a recording, from the frame numbers and time stamps in PROX's
+    frame names (the median over consecutive frames); 30 (Kinect) when they have none."""
+    stamps = []
+    for name in frames:
+        match = _FRAME_TIME.search(name)
+        if match is None:
+            return KINECT_FPS
+        number, h, m, sec, ms = (int(g) for g in match.groups())
+        stamps.append((number, h * 3600 + m * 60 + sec + ms / 1000))
+    rates = [(b[0] - a[0]) / (b[1] - a[1]) for a, b in zip(stamps, stamps[1:])
+             if b[1] > a[1] and b[0] > a[0]]
+    return float(np.median(rates)) if rates else KINECT_FPS
 
 
 def list_recordings(base: Path) -> list[str]:

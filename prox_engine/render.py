@@ -42,15 +42,20 @@ class BodyMesh:
     penetrating: np.ndarray | None = None  # vertex ids painted red
     contact: np.ndarray | None = None  # vertex ids painted blue
 
-    @cached_property
-    def mesh(self) -> pyrender.Mesh:
-        """The coloured mesh, built once however many views draw it."""
+    def colours(self) -> np.ndarray:
+        """(V, 4) RGBA in [0, 1]: the body's colour, flagged vertices in the legend's."""
         colours = np.tile(np.array([*self.colour, 1.0]), (len(self.vertices), 1))
         if self.contact is not None:
             colours[np.asarray(self.contact, dtype=int), :3] = CONTACT_BLUE
         if self.penetrating is not None:
             colours[np.asarray(self.penetrating, dtype=int), :3] = PENETRATING_RED
-        mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_colors=colours, process=False)
+        return colours
+
+    @cached_property
+    def mesh(self) -> pyrender.Mesh:
+        """The coloured mesh, built once however many views draw it."""
+        mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_colors=self.colours(),
+                               process=False)
         return pyrender.Mesh.from_trimesh(mesh, smooth=True)
 
     @cached_property

@@ -15,8 +15,9 @@ from typing import Callable
 
 import numpy as np
 
+from . import viewer
 from .config import load_config
-from .dataset import Recording, load_calibration, load_cam2world
+from .dataset import Recording, frame_rate, load_calibration, load_cam2world
 from .errors import InputError
 from .output import atomic_write_text
 from .plots import line_chart
@@ -93,46 +94,77 @@ def _save(image: np.ndarray, path: Path, thumb: Path | None = None) -> None:
         picture.resize(THUMB, Image.BILINEAR).save(thumb, quality=85)
 
 
-def render_frames(fit: FittedRecording, data: Path, frames: list[str], out: Path,
-                  baseline: FittedRecording | None = None, flags: bool = True,
+@dataclass
+class Setting:
+    """What every view of a recording's report shares: its camera, the scan (world frame),
+    the fit and optional baseline as ``(prefix, run)``, and the box around every body."""
+
+    recording: Recording
+    camera: object
+    cam2world: np.ndarray
+    scene: object  # trimesh.Trimesh
+    runs: list[tuple[str, FittedRecording]]
+    bounds: np.ndarray  # (2, 3) world-frame corners
+
+    @classmethod
+    def load(cls, fit: FittedRecording, data: Path, frames: list[str],
+             baseline: FittedRecording | None = None) -> Setting:
+        import trimesh
+
+        rec = Recording(Path(data), fit.summary["recording"])
+        cam2world = load_cam2world(rec.cam2world_path)
+        runs = [("", fit)] + ([("baseline_", baseline)] if baseline else [])
+        # One mesh in memory at a time: sequences are long.
+        bounds = np.array([[np.inf] * 3, [-np.inf] * 3])
+        for _, run in runs:
+            for frame in frames:
+                points = _world(run.vertices(frame)[0], cam2world)
+                bounds = np.stack([np.minimum(bounds[0], points.min(0)),
+                                   np.maximum(bounds[1], points.max(0))])
+        return cls(rec, load_calibration(rec.calibration_path), cam2world,
+                   trimesh.load(rec.scene_path, force="mesh", process=False), runs, bounds)
+
+    @property
+    def scene_colours(self) -> np.ndarray | None:
+        """The scan's vertex colours (V, 4) in [0, 1], when it has them (PROX scans do)."""
+        if self.scene.visual.kind != "vertex":
+            return None
+        return np.asarray(self.scene.visual.vertex_colors, dtype=float) / 255
+
+    def body(self, prefix: str, run: FittedRecording, frame: str, flags: bool = True):
+        """A fitted body in the world frame, in its run's colour, flagged vertices marked
+        (a :class:`render.BodyMesh`)."""
+        from .render import BASELINE_YELLOW, FIT_GREY, BodyMesh
+
+        flagged = run.params(frame).get("vertices_flagged", {}) if flags else {}
+        vertices, faces = run.vertices(frame)
+        return BodyMesh(_world(vertices, self.cam2world), faces,
+                        BASELINE_YELLOW if prefix else FIT_GREY,
+                        flagged.get("penetrating"), flagged.get("contact"))
+
+
+def render_frames(setting: Setting, frames: list[str], out: Path, flags: bool = True,
                   size: tuple[int, int] = SIZE) -> dict[str, float]:
     """Write ``out/<frame>_<view>.jpg`` (+ thumbnails, + baseline views); returns timings."""
-    import trimesh
     from PIL import Image
 
-    from .render import BASELINE_YELLOW, FIT_GREY, VIEWS, BodyMesh, SceneRenderer
+    from .render import VIEWS, SceneRenderer
 
-    rec = Recording(Path(data), fit.summary["recording"])
-    camera = load_calibration(rec.calibration_path)
-    cam2world = load_cam2world(rec.cam2world_path)
-    scene = trimesh.load(rec.scene_path, force="mesh", process=False)
-    colours = (np.asarray(scene.visual.vertex_colors, dtype=float) / 255
-               if scene.visual.kind == "vertex" else None)
-    runs = [("", fit)] + ([("baseline_", baseline)] if baseline else [])
-    # The box around every body to render (one mesh in memory at a time: sequences are long).
-    bounds = np.array([[np.inf] * 3, [-np.inf] * 3])
-    for _, run in runs:
-        for frame in frames:
-            points = _world(run.vertices(frame)[0], cam2world)
-            bounds = np.stack([np.minimum(bounds[0], points.min(0)),
-                               np.maximum(bounds[1], points.max(0))])
-    flip = _mirrored(fit.summary["config"])
+    scene, cam2world = setting.scene, setting.cam2world
+    flip = _mirrored(setting.runs[0][1].summary["config"])
 
     start = time.perf_counter()
-    renderer = SceneRenderer(scene.vertices, scene.faces, colours, camera, cam2world, bounds,
-                             *size)
+    renderer = SceneRenderer(scene.vertices, scene.faces, setting.scene_colours,
+                             setting.camera, cam2world,
+                             setting.bounds, *size)
     setup = time.perf_counter() - start
     try:
         start = time.perf_counter()
-        for prefix, run in runs:
+        for prefix, run in setting.runs:
             for frame in frames:
-                flagged = run.params(frame).get("vertices_flagged", {}) if flags else {}
-                vertices, faces = run.vertices(frame)
-                body = BodyMesh(_world(vertices, cam2world), faces,
-                                BASELINE_YELLOW if prefix else FIT_GREY,
-                                flagged.get("penetrating"), flagged.get("contact"))
+                body = setting.body(prefix, run, frame, flags)
                 thumb = None if prefix else out / f"{frame}_thumb.jpg"
-                image_path = _colour_image(rec, frame)
+                image_path = _colour_image(setting.recording, frame)
                 if image_path is not None:
                     image = Image.open(image_path).convert("RGB")
                     if flip:
@@ -143,7 +175,7 @@ def render_frames(fit: FittedRecording, data: Path, frames: list[str], out: Path
                 for view in VIEWS:
                     _save(renderer.render(view, [body]), out / f"{frame}_{prefix}{view}.jpg",
                           thumb if view == "camera" else None)
-        per_frame = (time.perf_counter() - start) / max(1, len(frames) * len(runs))
+        per_frame = (time.perf_counter() - start) / max(1, len(frames) * len(setting.runs))
     finally:
         renderer.close()
     return {"renderer_setup_seconds": setup, "seconds_per_frame": per_frame}
@@ -181,7 +213,11 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
     report = fit.path / "report"
     (report / "images").mkdir(parents=True, exist_ok=True)
     (report / "frames").mkdir(exist_ok=True)
-    timings = render_frames(fit, data, names, report / "images", base, flags, size)
+    setting = Setting.load(fit, data, names, base)
+    timings = render_frames(setting, names, report / "images", flags, size)
+    start = time.perf_counter()
+    viewer.write_assets(report, setting, names, flags)
+    timings["viewer_seconds_per_frame"] = (time.perf_counter() - start) / max(1, len(names))
 
     env = _templates()
     has_image = {n: (report / "images" / f"{n}_overlay.jpg").exists() for n in names}
@@ -206,6 +242,12 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
             params=json.dumps(params, indent=1), timings=params.get("timings", {})
             .get("stages", {}), previous=names[i - 1] if i else None,
             next=names[i + 1] if i + 1 < len(names) else None)
+    pages["viewer.html"] = env.get_template("viewer.html").render(
+        **{**common, "colours": _legend_colours(baseline=base is not None)},
+        baseline=base.summary["config"] if base else None,
+        config_json=viewer.config_json(viewer.page_config(
+            rendered, frame_rate([f["frame"] for f in frames]) / max(1, every), setting.camera, setting.cam2world, setting.bounds,
+            base is not None)))
     if base is not None:
         views = [(v, VIEW_LABELS[v]) for v in VIEW_LABELS if v != "overlay"]
         pages["compare.html"] = env.get_template("compare.html").render(

@@ -47,7 +47,8 @@ def _check_page(page: Path) -> list[Path]:
 
 
 def _pages(report: Path) -> list[Path]:
-    return [report / "index.html", *sorted((report / "frames").glob("*.html"))]
+    return [report / "index.html", report / "viewer.html",
+            *sorted((report / "frames").glob("*.html"))]
 
 
 def test_fit_writes_a_report_whose_links_and_images_resolve(cli_fits):
