@@ -21,6 +21,7 @@ from .dataset import Recording, frame_rate, load_calibration, load_cam2world
 from .errors import InputError
 from .output import atomic_write_text
 from .plots import line_chart
+from .video import VideoWriter
 
 SIZE = (960, 540)
 THUMB = (320, 180)
@@ -144,8 +145,10 @@ class Setting:
 
 
 def render_frames(setting: Setting, frames: list[str], out: Path, flags: bool = True,
-                  size: tuple[int, int] = SIZE) -> dict[str, float]:
-    """Write ``out/<frame>_<view>.jpg`` (+ thumbnails, + baseline views); returns timings."""
+                  size: tuple[int, int] = SIZE, video: VideoWriter | None = None
+                  ) -> dict[str, float]:
+    """Write ``out/<frame>_<view>.jpg`` (+ thumbnails, + baseline views), and add the fit's
+    views of each frame to ``video``; returns timings."""
     from PIL import Image
 
     from .render import VIEWS, SceneRenderer
@@ -172,9 +175,12 @@ def render_frames(setting: Setting, frames: list[str], out: Path, flags: bool = 
                     _save(renderer.overlay(np.asarray(image), [body]),
                           out / f"{frame}_{prefix}overlay.jpg", thumb)
                     thumb = None
-                for view in VIEWS:
-                    _save(renderer.render(view, [body]), out / f"{frame}_{prefix}{view}.jpg",
+                images = [renderer.render(view, [body]) for view in VIEWS]
+                for view, image in zip(VIEWS, images):
+                    _save(image, out / f"{frame}_{prefix}{view}.jpg",
                           thumb if view == "camera" else None)
+                if video is not None and not prefix:
+                    video.add(images)
         per_frame = (time.perf_counter() - start) / max(1, len(frames) * len(setting.runs))
     finally:
         renderer.close()
@@ -214,7 +220,9 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
     (report / "images").mkdir(parents=True, exist_ok=True)
     (report / "frames").mkdir(exist_ok=True)
     setting = Setting.load(fit, data, names, base)
-    timings = render_frames(setting, names, report / "images", flags, size)
+    fps = frame_rate([f["frame"] for f in frames]) / max(1, every)
+    with VideoWriter(report / "sequence.mp4", fps) as video:
+        timings = render_frames(setting, names, report / "images", flags, size, video)
     start = time.perf_counter()
     viewer.write_assets(report, setting, names, flags)
     timings["viewer_seconds_per_frame"] = (time.perf_counter() - start) / max(1, len(names))
@@ -230,7 +238,7 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
               "colours": _legend_colours(baseline=False), "every": every}
     pages = {"index.html": env.get_template("sequence.html").render(
         **common, frames=rows, rendered=rendered, terms=terms, charts=_charts([fit]),
-        links=links or {}, compare=base.summary if base else None)}
+        links=links or {}, compare=base.summary if base else None, fps=fps)}
     for i, name in enumerate(names):
         params = dict(fit.params(name))
         flagged = params.pop("vertices_flagged", {})
@@ -246,7 +254,7 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
         **{**common, "colours": _legend_colours(baseline=base is not None)},
         baseline=base.summary["config"] if base else None,
         config_json=viewer.config_json(viewer.page_config(
-            rendered, frame_rate([f["frame"] for f in frames]) / max(1, every), setting.camera, setting.cam2world, setting.bounds,
+            rendered, fps, setting.camera, setting.cam2world, setting.bounds,
             base is not None)))
     if base is not None:
         views = [(v, VIEW_LABELS[v]) for v in VIEW_LABELS if v != "overlay"]

@@ -51,8 +51,8 @@ def cli_fit(base: Path, out: Path, config: Path, *extra: str) -> subprocess.Comp
 
 @pytest.fixture(scope="session")
 def cli_fits(sitting_data, tmp_path_factory) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
-    """``prox fit`` (with its reports) of the first sitting frame with rgb and prox, on a copy
-    of the data that has a colour image for that frame."""
+    """``prox fit`` (with its reports) of the first two sitting frames with rgb and prox, on
+    a copy of the data that has a colour image for the first frame only."""
     tmp = tmp_path_factory.mktemp("fits")
     base = tmp / "data"
     shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
@@ -64,7 +64,7 @@ def cli_fits(sitting_data, tmp_path_factory) -> dict[str, tuple[Path, subprocess
     Image.fromarray(gradient).save(colour / f"{frame}.jpg")
     runs = {}
     for name in ("rgb", "prox"):
-        run = cli_fit(base, tmp / name, coarse_config(tmp, name), "--frames", "1")
+        run = cli_fit(base, tmp / name, coarse_config(tmp, name), "--frames", "2")
         assert run.returncode == 0, run.stderr
         runs[name] = (tmp / name, run)
     return runs

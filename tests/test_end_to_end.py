@@ -14,7 +14,7 @@ from .conftest import REC, cli_fit, coarse_config
 def test_outputs_in_prox_layout(cli_fits, body):
     out, run = cli_fits["prox"]
     summary = json.loads((out / REC / "summary.json").read_text())
-    assert summary["frames_fitted"] == 1 and summary["frames_failed"] == 0
+    assert summary["frames_fitted"] == 2 and summary["frames_failed"] == 0
     frame = summary["frames"][0]["frame"]
     result = json.loads((out / REC / "results" / frame / "000.json").read_text())
     assert {"global_orient", "transl", "body_pose", "phenotype", "camera", "losses",

@@ -76,7 +76,7 @@ def test_report_command_adds_the_comparison(cli_fits, tmp_path):
                           "--compare", str(rgb / REC)], capture_output=True, text=True,
                          timeout=300)
     assert run.returncode == 0, run.stderr
-    assert re.search(r"1 frames rendered, [\d.]+ s per frame", run.stdout), run.stdout
+    assert re.search(r"2 frames rendered, [\d.]+ s per frame", run.stdout), run.stdout
     compare = results / "report" / "compare.html"
     images = _check_page(compare)
     assert any("_baseline_" in i.name for i in images) and any(
@@ -108,6 +108,36 @@ def test_report_loads_in_headless_chromium(cli_fits, tmp_path):
     picture = np.asarray(Image.open(screenshot).convert("RGB"))
     assert picture.shape == (1400, 1280, 3) and picture.std() > 20
     print(f"report screenshot: {screenshot}")
+
+
+def test_sequence_video_has_a_frame_per_rendered_frame_and_plays_in_chromium(cli_fits,
+                                                                            tmp_path):
+    import imageio_ffmpeg
+
+    out, _ = cli_fits["prox"]
+    report = out / REC / "report"
+    frames = json.loads((out / REC / "summary.json").read_text())["frames"]
+    count, seconds = imageio_ffmpeg.count_frames_and_secs(str(report / "sequence.mp4"))
+    # the synthetic recording's frame names are 1 s apart: 1 frame per second
+    assert count == len(frames) == 2 and seconds == pytest.approx(2.0, abs=0.05)
+    assert 'src="sequence.mp4"' in (report / "index.html").read_text()
+    probe = tmp_path / "probe.html"  # a page that reports what the <video> element reached
+    probe.write_text(
+        '<!DOCTYPE html><html><body><video id="v" muted preload="auto" src="'
+        + (report / "sequence.mp4").as_uri() + '"></video><script>'
+        'var v = document.getElementById("v");'
+        'v.addEventListener("loadeddata", function () {'
+        '  document.body.setAttribute("data-video", v.readyState + " " + v.duration); });'
+        'v.addEventListener("error", function () {'
+        '  document.body.setAttribute("data-video", "error " + v.error.code); });'
+        '</script></body></html>')
+    dom = subprocess.run(["chromium", "--headless", "--no-sandbox", "--disable-gpu",
+                          "--virtual-time-budget=10000", "--dump-dom", probe.as_uri()],
+                         capture_output=True, text=True, timeout=120)
+    state = re.search(r'data-video="([^"]*)"', dom.stdout)
+    assert state, dom.stderr[-2000:]
+    ready, duration = state[1].split()
+    assert int(ready) >= 2 and float(duration) == pytest.approx(2.0, abs=0.05), state[1]
 
 
 HOSTILE = "javascript:alert(document.domain)"
