@@ -76,18 +76,27 @@ class Recording:
         return (depth, mask) if depth.exists() and mask.exists() else None
 
 
+def frame_times(frames: list[str]) -> list[float]:
+    """Each frame's time in the recording (s), from the time stamps in PROX's frame names
+    (``s001_frame_00001__00.00.00.029``), or their order at 30 frames per second (Kinect)
+    when the names have none."""
+    stamps = [_FRAME_TIME.search(name) for name in frames]
+    if not all(stamps):
+        return [i / KINECT_FPS for i in range(len(frames))]
+    return [int(h) * 3600 + int(m) * 60 + int(sec) + int(ms) / 1000
+            for h, m, sec, ms in (match.groups()[1:] for match in stamps)]
+
+
 def frame_rate(frames: list[str]) -> float:
-    """Frames per second of a recording, from the frame numbers and time stamps in PROX's
-    frame names (the median over consecutive frames); 30 (Kinect) when they have none."""
-    stamps = []
-    for name in frames:
-        match = _FRAME_TIME.search(name)
-        if match is None:
-            return KINECT_FPS
-        number, h, m, sec, ms = (int(g) for g in match.groups())
-        stamps.append((number, h * 3600 + m * 60 + sec + ms / 1000))
-    rates = [(b[0] - a[0]) / (b[1] - a[1]) for a, b in zip(stamps, stamps[1:])
-             if b[1] > a[1] and b[0] > a[0]]
+    """Frames per second of a recording: the median over consecutive frames of the frame
+    numbers in PROX's frame names over their time stamps; 30 (Kinect) without them."""
+    stamps = [_FRAME_TIME.search(name) for name in frames]
+    if not all(stamps):
+        return KINECT_FPS
+    numbers = [int(match[1]) for match in stamps]
+    times = frame_times(frames)
+    rates = [(n1 - n0) / (t1 - t0) for n0, n1, t0, t1 in
+             zip(numbers, numbers[1:], times, times[1:]) if t1 > t0 and n1 > n0]
     return float(np.median(rates)) if rates else KINECT_FPS
 
 

@@ -10,14 +10,15 @@ from typing import Callable
 
 import torch
 
-from . import metrics
+from . import metrics, quality
 from .body.base import BodyModel
 from .config import FitConfig
-from .dataset import Recording, load_calibration, load_cam2world, load_scene_mesh
+from .dataset import (Recording, frame_times, load_calibration, load_cam2world,
+                      load_scene_mesh)
 from .depth import load_depth_points
 from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
-from .keypoints import load_keypoints
+from .keypoints import BODY, BODY_25, load_keypoints
 from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, write_pickle
 from .scene import Scene
 
@@ -89,6 +90,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
         if progress:
             progress(done, len(names), names[done - 1])
 
+    quality.recording_flags(frames_summary, frame_times([f["frame"] for f in frames_summary]))
     summary = _summarise(recording, source or str(Path(base).absolute()), config, sequence,
                          frames_summary, failures, scene_seconds)
     write_json(Path(out) / recording / "summary.json", summary)
@@ -120,9 +122,13 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     scene_stats, flagged = metrics.scene_stats(result.vertices, body, scene)
     error = metrics.reprojection_error(result.keypoints, frame.keypoints, camera,
                                        body.keypoint_mask)
+    joints = result.keypoints[BODY]
     stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
+             "root_m": [round(float(x), 4) for x in joints[BODY_25.index("mid_hip")]],
              "seconds": result.seconds, "events": result.events,
-             "sides_swapped": result.swapped}
+             "sides_swapped": result.swapped,
+             "flags": quality.frame_flags(scene_stats, result.vertices, joints,
+                                          frame.keypoints.confidence, scene)}
     params = body.export(result.params, 0)
     params["camera"] = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                         "k": camera.k, "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
@@ -162,6 +168,8 @@ def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
                                              if n else None),
             "parts": {p: c / n for p, c in sorted(parts.items())},
         },
+        "flagged_frames": [{"frame": f["frame"], "flags": f["flags"]} for f in frames
+                           if f["flags"]],
         "reprojection_error_px": mean("reprojection_error_px"),
         "seconds_per_frame": mean("seconds"),
         "scene_setup_seconds": scene_seconds,

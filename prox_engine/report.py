@@ -238,7 +238,8 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
               "colours": _legend_colours(baseline=False), "every": every}
     pages = {"index.html": env.get_template("sequence.html").render(
         **common, frames=rows, rendered=rendered, terms=terms, charts=_charts([fit]),
-        links=links or {}, compare=base.summary if base else None, fps=fps)}
+        links=links or {}, compare=base.summary if base else None, fps=fps,
+        rendered_names=set(names))}
     for i, name in enumerate(names):
         params = dict(fit.params(name))
         flagged = params.pop("vertices_flagged", {})

@@ -1,0 +1,124 @@
+"""Quality flags: frames whose fit is probably wrong, from what the fit itself knows. A flag
+is ``{"kind": ..., "detail": ...}``; frames carry theirs in ``summary.json``.
+
+Per frame (:func:`frame_flags`): the body hidden behind the scan where the detector saw it,
+its underside clear of every surface (floating), or deep inside the scan. Over the recording
+(:func:`recording_flags`): a reprojection error or a distance from the camera far from the
+recording's median, and a jump from the previous frame faster than a person moves.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .keypoints import BODY
+from .scene import Scene
+
+SEEN = 0.5  # detector confidence of a joint it clearly saw
+HIDDEN_SHARE = 0.5  # flag when at least this share of the clearly seen joints is hidden
+RAY_STEP = 0.01  # m between samples along a ray
+RAY_MARGIN = 0.06  # m before a joint (its own flesh) and after the camera that do not count
+SURFACE = 0.006  # m: a ray sample this close to the scan has met a surface (> RAY_STEP / 2)
+UNDERSIDE = 0.10  # m: a body's underside, what rests on something, is its lowest 10 cm
+FLOATING = 0.05  # m: the underside this far above the surface below it
+REACH = 0.5  # m: how far below the underside a surface is looked for
+SUNK = 0.10  # m: a vertex this deep inside the scan
+MIN_FRAMES = 3  # recording-level outliers need a median to stand out from
+ERROR_RATIO, ERROR_MIN = 3.0, 10.0  # reprojection error > 3 x median and > 10 px
+DEPTH_RATIO = 0.25  # distance from the camera off the median by more than 25 %
+SPEED = 3.0  # m/s: faster than anyone walks around a room
+
+
+def _flag(kind: str, detail: str) -> dict:
+    return {"kind": kind, "detail": detail}
+
+
+def first_hits(starts: torch.Tensor, directions: torch.Tensor, near: torch.Tensor,
+               far: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """Per ray (camera-frame ``starts`` and unit ``directions``, (R, 3)), the distance
+    along it, between ``near`` and ``far`` (R,), of the first sample (every 1 cm) within
+    6 mm of the scan; inf where there is none. The grid SDF picks the samples worth an
+    exact distance."""
+    steps = torch.arange(0.0, float(far.max()) + RAY_STEP, RAY_STEP)
+    ray, k = torch.nonzero((steps[None] >= near[:, None]) & (steps[None] <= far[:, None]),
+                           as_tuple=True)
+    samples = starts[ray] + directions[ray] * steps[k, None]
+    close = torch.nonzero(scene.signed_distance(samples).abs()
+                          < 2 * scene.sdf.voxel_size).flatten()
+    met = close[scene.exact_signed_distance(samples[close]).abs() < SURFACE]
+    first = torch.full((len(starts),), math.inf)
+    return first.scatter_reduce_(0, ray[met], steps[k[met]], "amin")
+
+
+@torch.no_grad()
+def hidden_joints(joints: torch.Tensor, confidence: np.ndarray, scene: Scene
+                  ) -> tuple[int, int]:
+    """Of the body joints (camera frame, (25, 3)) the detector clearly saw, how many lie
+    behind a scan surface from the camera; returns (hidden, seen)."""
+    seen = joints[torch.from_numpy(confidence[BODY] > SEEN)]
+    if len(seen) == 0:
+        return 0, 0
+    length = seen.norm(dim=1)
+    hits = first_hits(torch.zeros_like(seen), seen / length[:, None],
+                      torch.full_like(length, RAY_MARGIN), length - RAY_MARGIN, scene)
+    return int(torch.isfinite(hits).sum()), len(seen)
+
+
+@torch.no_grad()
+def underside_gap(vertices: torch.Tensor, scene: Scene) -> float:
+    """How far (m) the body's underside (its lowest 10 cm: a standing body's soles, a lying
+    body's back) is above the first surface straight below it; inf beyond 50 cm."""
+    height = scene.to_world(vertices)[:, 2]
+    under = vertices[height < height.min() + UNDERSIDE][::4]
+    down = -scene.up_in_camera().expand_as(under)
+    return float(first_hits(under, down, torch.zeros(len(under)),
+                            torch.full((len(under),), REACH), scene).min())
+
+
+def frame_flags(stats: dict, vertices: torch.Tensor, joints: torch.Tensor,
+                confidence: np.ndarray, scene: Scene) -> list[dict]:
+    """Flags of one fitted frame: ``stats`` as :func:`metrics.scene_stats` wrote them,
+    the fitted ``vertices`` (V, 3) and body ``joints`` (25, 3) in camera coordinates,
+    ``confidence`` the detector's (118,)."""
+    flags = []
+    hidden, seen = hidden_joints(joints, confidence, scene)
+    if seen and hidden >= HIDDEN_SHARE * seen:
+        flags.append(_flag("hidden", f"{hidden} of the {seen} joints the detector saw are "
+                                     "behind the scan from the camera"))
+    gap = underside_gap(vertices, scene)
+    if gap > FLOATING:
+        flags.append(_flag("floating", "nothing under the body: its underside is "
+                           + (f"{gap * 100:.0f} cm" if math.isfinite(gap) else
+                              f"more than {REACH * 100:.0f} cm") + " above any surface"))
+    if stats["max_depth_m"] > SUNK:
+        flags.append(_flag("sunk", f"part of the body is {stats['max_depth_m'] * 100:.0f} cm "
+                                   "inside the scan"))
+    return flags
+
+
+def recording_flags(frames: list[dict], times: list[float]) -> None:
+    """Add to each frame's ``flags`` (in place) the outliers of the recording: reprojection
+    error, distance from the camera, and speed since the previous frame. ``frames`` are the
+    summary's, in order; ``times`` their time in the recording (s)."""
+    if len(frames) >= MIN_FRAMES:
+        error = np.median([f["reprojection_error_px"] for f in frames])
+        distance = np.median([np.linalg.norm(f["root_m"]) for f in frames])
+        for f in frames:
+            if f["reprojection_error_px"] > max(ERROR_RATIO * error, ERROR_MIN):
+                f["flags"].append(_flag("reprojection", f"data error "
+                                        f"{f['reprojection_error_px']:.0f} px against "
+                                        f"{error:.0f} px for the recording's median"))
+            off = np.linalg.norm(f["root_m"]) / distance - 1
+            if abs(off) > DEPTH_RATIO:
+                f["flags"].append(_flag("distance", f"{abs(off) * 100:.0f} % "
+                                        f"{'farther from' if off > 0 else 'closer to'} the "
+                                        "camera than the recording's median"))
+    for i in range(1, len(frames)):
+        before, f = frames[i - 1], frames[i]
+        seconds = times[i] - times[i - 1]
+        moved = float(np.linalg.norm(np.subtract(f["root_m"], before["root_m"])))
+        if seconds > 0 and moved / seconds > SPEED:
+            f["flags"].append(_flag("jump", f"moved {moved:.2f} m in {seconds:.2f} s since "
+                                            f"{before['frame']}"))

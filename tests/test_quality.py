@@ -1,0 +1,113 @@
+"""Quality flags: a fit hidden behind the scan, floating or sunk in it, and the outliers of a
+recording (reprojection error, distance from the camera, speed) are flagged; the ground
+truth is not."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from prox_engine import metrics, quality
+from prox_engine.dataset import Recording, frame_rate, frame_times
+from prox_engine.keypoints import load_keypoints
+from prox_engine.pipeline import load_scene
+
+from .conftest import REC
+
+
+def _flags(vertices, joints, confidence, body, scene) -> list[str]:
+    stats, _ = metrics.scene_stats(vertices, body, scene)
+    return [f["kind"] for f in quality.frame_flags(stats, vertices, joints, confidence,
+                                                   scene)]
+
+
+def test_a_body_pushed_behind_the_chair_back_is_flagged(sitting_data, body):
+    """The demo's failure: a sitter fitted 30 cm too deep, through the thin chair back. The
+    joints the detector saw are then behind the scan, seen from the camera."""
+    rec = Recording(sitting_data, REC)
+    scene = load_scene(rec, 128)
+    name = rec.frames()[0]
+    truth = np.load(sitting_data / "ground_truth" / REC / f"{name}.npz")
+    vertices = torch.as_tensor(truth["vertices"], dtype=torch.float32)
+    joints = torch.as_tensor(truth["joints"], dtype=torch.float32)
+    confidence = load_keypoints(rec.keypoint_path(name)).confidence
+    assert _flags(vertices, joints, confidence, body, scene) == []
+    scale = 1 + 0.30 / float(joints[8].norm())  # 30 cm farther along the camera rays
+    hidden, seen = quality.hidden_joints(joints * scale, confidence, scene)
+    assert seen >= 15 and hidden >= seen / 2
+    assert "hidden" in _flags(vertices * scale, joints * scale, confidence, body, scene)
+
+
+def test_floating_and_sunk_bodies_are_flagged(sitting_data, body):
+    rec = Recording(sitting_data, REC)
+    scene = load_scene(rec, 128)
+    name = rec.frames()[0]
+    truth = np.load(sitting_data / "ground_truth" / REC / f"{name}.npz")
+    vertices = torch.as_tensor(truth["vertices"], dtype=torch.float32)
+    joints = torch.as_tensor(truth["joints"], dtype=torch.float32)
+    confidence = np.zeros(118)  # nothing seen: only the scene decides
+    up = scene.up_in_camera()
+    assert _flags(vertices + 0.3 * up, joints + 0.3 * up, confidence, body, scene) == [
+        "floating"]
+    assert "sunk" in _flags(vertices - 0.2 * up, joints - 0.2 * up, confidence, body, scene)
+
+
+def _frame(name: str, error: float, root: list[float]) -> dict:
+    return {"frame": name, "reprojection_error_px": error, "root_m": root, "flags": []}
+
+
+def test_recording_outliers_are_flagged():
+    frames = [_frame("a", 5, [0, 0, 3.0]), _frame("b", 6, [0.05, 0, 3.0]),
+              _frame("c", 40, [0.1, 0, 3.0]), _frame("d", 5, [0.1, 0, 4.2]),
+              _frame("e", 6, [0.15, 0, 3.0])]
+    quality.recording_flags(frames, [0.0, 1 / 30, 2 / 30, 3 / 30, 4 / 30])
+    kinds = {f["frame"]: [flag["kind"] for flag in f["flags"]] for f in frames}
+    assert kinds == {"a": [], "b": [], "c": ["reprojection"], "d": ["distance", "jump"],
+                     "e": ["jump"]}
+    # the same motion over seconds is a walk, not a jump
+    slow = [_frame(f["frame"], 5, f["root_m"]) for f in frames]
+    quality.recording_flags(slow, [0.0, 1.0, 2.0, 3.0, 4.0])
+    assert [flag["kind"] for f in slow for flag in f["flags"]] == ["distance"]
+
+
+def test_frame_times_and_rate_come_from_prox_frame_names():
+    names = ["s001_frame_00001__00.00.00.029", "s001_frame_00002__00.00.00.062",
+             "s001_frame_00004__00.00.00.129", "s001_frame_01801__00.01.00.000"]
+    assert frame_times(names)[:3] == pytest.approx([0.029, 0.062, 0.129])
+    assert frame_times(names)[3] == pytest.approx(60.0)
+    assert frame_rate(names) == pytest.approx(30.0, abs=0.1)
+    assert frame_times(["a", "b"]) == pytest.approx([0, 1 / 30])  # no stamps: Kinect's rate
+
+
+def test_summary_carries_the_flags(cli_fits):
+    out, _ = cli_fits["prox"]
+    summary = json.loads((out / REC / "summary.json").read_text())
+    for frame in summary["frames"]:
+        assert isinstance(frame["flags"], list) and len(frame["root_m"]) == 3
+    assert summary["flagged_frames"] == [{"frame": f["frame"], "flags": f["flags"]}
+                                         for f in summary["frames"] if f["flags"]]
+
+
+def test_flags_show_on_the_sequence_and_frame_pages(cli_fits, tmp_path):
+    import shutil
+
+    from prox_engine.report import build_report
+
+    out, _ = cli_fits["prox"]
+    results = tmp_path / REC
+    shutil.copytree(out / REC, results)
+    summary = json.loads((results / "summary.json").read_text())
+    frame = summary["frames"][1]
+    frame["flags"] = [{"kind": "hidden", "detail": "9 of the 14 joints <b>x</b>"}]
+    summary["flagged_frames"] = [{"frame": frame["frame"], "flags": frame["flags"]}]
+    (results / "summary.json").write_text(json.dumps(summary))
+    build_report(results, data=out.parent / "data")
+    index = (results / "report" / "index.html").read_text()
+    page = (results / "report" / "frames" / f"{frame['frame']}.html").read_text()
+    for html in (index, page):
+        assert "<b>hidden</b>" in html and "9 of the 14 joints &lt;b&gt;x&lt;/b&gt;" in html
+    other = summary["frames"][0]["frame"]
+    assert "Probably a wrong fit" not in (results / "report" / "frames" / f"{other}.html"
+                                         ).read_text()
