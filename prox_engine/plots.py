@@ -5,6 +5,8 @@ import math
 from html import escape
 
 PALETTE = ("#4a4a4a", "#e0a800", "#1f5fd6")
+DOTS = 30  # with this many points or fewer, each is marked
+LABELS = 5  # and with this many or fewer, each also carries its value
 
 
 def _ticks(low: float, high: float, count: int = 4) -> list[float]:
@@ -43,23 +45,30 @@ def line_chart(title: str, x: list[float], series: dict[str, list[float | None]]
                      f'y2="{sy(t):.1f}" class="grid"/>'
                      f'<text x="{left - 4}" y="{sy(t) + 4:.1f}" class="tick" '
                      f'text-anchor="end">{t:g}{escape(unit)}</text>')
-    parts.append(f'<text x="{left}" y="{height - 6}" class="tick">frame {x0:g}</text>'
-                 f'<text x="{width - right}" y="{height - 6}" class="tick" '
-                 f'text-anchor="end">{x1:g}</text>')
+    frame_ticks = x if len(x) <= 10 else [x0, x1]
+    parts.append(f'<text x="{left - 4}" y="{height - 6}" class="tick" '
+                 f'text-anchor="end">frame</text>')
+    parts += [f'<text x="{sx(xi):.1f}" y="{height - 6}" class="tick" '
+              f'text-anchor="middle">{xi:g}</text>' for xi in frame_ticks]
     for (name, ys), colour in zip(series.items(), PALETTE):
-        runs: list[list[str]] = [[]]
+        runs: list[list[tuple[float, float]]] = [[]]
         for xi, yi in zip(x, ys):
             if yi is None or not math.isfinite(yi):
                 runs.append([])
             else:
-                runs[-1].append(f"{sx(xi):.1f},{sy(yi):.1f}")
+                runs[-1].append((xi, yi))
         for run in filter(None, runs):
-            if len(run) == 1:
-                cx, cy = run[0].split(",")
-                parts.append(f'<circle cx="{cx}" cy="{cy}" r="2.5" fill="{colour}"/>')
-            else:
-                parts.append(f'<polyline points="{" ".join(run)}" fill="none" '
-                             f'stroke="{colour}" stroke-width="1.8"/>')
+            if len(run) > 1:
+                points = " ".join(f"{sx(a):.1f},{sy(b):.1f}" for a, b in run)
+                parts.append(f'<polyline points="{points}" fill="none" stroke="{colour}" '
+                             f'stroke-width="1.8"/>')
+            if len(x) <= DOTS or len(run) == 1:
+                parts += [f'<circle cx="{sx(a):.1f}" cy="{sy(b):.1f}" r="2.8" '
+                          f'fill="{colour}"/>' for a, b in run]
+            if len(x) <= LABELS:
+                parts += [f'<text x="{sx(a):.1f}" y="{sy(b) - 6:.1f}" class="tick" '
+                          f'text-anchor="{"end" if sx(a) > width / 2 else "start"}">'
+                          f'{b:.3g}{escape(unit)}</text>' for a, b in run]
     if len(series) > 1:
         for i, (name, colour) in enumerate(zip(series, PALETTE)):
             x_legend = width - right - 110 * (len(series) - i)

@@ -21,7 +21,7 @@ import trimesh  # noqa: E402
 
 from .camera import Camera  # noqa: E402
 
-FIT_GREY = (0.78, 0.78, 0.78)
+FIT_COLOUR = (0.36, 0.74, 0.56)  # green: apart from the scan, the flags and the baseline
 BASELINE_YELLOW = (0.96, 0.76, 0.12)
 PENETRATING_RED = (0.90, 0.08, 0.08)
 CONTACT_BLUE = (0.10, 0.35, 0.95)
@@ -38,7 +38,7 @@ class BodyMesh:
 
     vertices: np.ndarray  # (V, 3), world frame
     faces: np.ndarray  # (F, 3)
-    colour: tuple[float, float, float] = FIT_GREY
+    colour: tuple[float, float, float] = FIT_COLOUR
     penetrating: np.ndarray | None = None  # vertex ids painted red
     contact: np.ndarray | None = None  # vertex ids painted blue
 
@@ -110,7 +110,7 @@ def _horizontal(v: np.ndarray) -> np.ndarray:
 
 
 def overview_views(bounds: np.ndarray, cam2world: np.ndarray, width: int, height: int,
-                   margin: float = 0.35, side_tilt: float = np.radians(15.0)
+                   margin: float = 0.2, side_tilt: float = np.radians(15.0)
                    ) -> dict[str, View]:
     """Top and side cameras framing the bodies' world box ``bounds`` (2, 3), oriented like
     the recording camera: the top view has the camera at the bottom of the image, the side

@@ -135,12 +135,12 @@ class Setting:
     def body(self, prefix: str, run: FittedRecording, frame: str, flags: bool = True):
         """A fitted body in the world frame, in its run's colour, flagged vertices marked
         (a :class:`render.BodyMesh`)."""
-        from .render import BASELINE_YELLOW, FIT_GREY, BodyMesh
+        from .render import BASELINE_YELLOW, FIT_COLOUR, BodyMesh
 
         flagged = run.params(frame).get("vertices_flagged", {}) if flags else {}
         vertices, faces = run.vertices(frame)
         return BodyMesh(_world(vertices, self.cam2world), faces,
-                        BASELINE_YELLOW if prefix else FIT_GREY,
+                        BASELINE_YELLOW if prefix else FIT_COLOUR,
                         flagged.get("penetrating"), flagged.get("contact"))
 
 
@@ -304,10 +304,10 @@ def _fmt(value: float | None, pattern: str) -> str:
 
 
 def _legend_colours(baseline: bool) -> dict[str, str | None]:
-    from .render import (BASELINE_YELLOW, CONTACT_BLUE, FIT_GREY, PENETRATING_RED)
+    from .render import (BASELINE_YELLOW, CONTACT_BLUE, FIT_COLOUR, PENETRATING_RED)
 
     rgb = lambda c: ", ".join(str(round(255 * x)) for x in c)  # noqa: E731
-    return {"fit": rgb(FIT_GREY), "baseline": rgb(BASELINE_YELLOW) if baseline else None,
+    return {"fit": rgb(FIT_COLOUR), "baseline": rgb(BASELINE_YELLOW) if baseline else None,
             "penetrating": rgb(PENETRATING_RED), "contact": rgb(CONTACT_BLUE)}
 
 

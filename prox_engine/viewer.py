@@ -69,7 +69,7 @@ def page_config(frames: list[dict], fps: float, camera, cam2world: np.ndarray,
     """What viewer.js reads: the frames (with a line of numbers each), the playback rate,
     the recording camera's pose and field of view to start from, the point to orbit about
     (the bodies' centre) and the colours."""
-    from .render import BASELINE_YELLOW, FIT_GREY, SCENE_COLOUR
+    from .render import BASELINE_YELLOW, FIT_COLOUR, SCENE_COLOUR
 
     return {
         "frames": [f["frame"] for f in frames],
@@ -81,5 +81,5 @@ def page_config(frames: list[dict], fps: float, camera, cam2world: np.ndarray,
         "fov_y": float(np.degrees(2 * np.arctan((camera.height or 2 * camera.cy) / 2
                                                  / camera.fy))),
         "target": ((bounds[0] + bounds[1]) / 2).tolist(),
-        "colours": {"fit": FIT_GREY, "baseline": BASELINE_YELLOW, "scene": SCENE_COLOUR},
+        "colours": {"fit": FIT_COLOUR, "baseline": BASELINE_YELLOW, "scene": SCENE_COLOUR},
     }
