@@ -37,7 +37,8 @@ _NUMBER_FIELDS = ("attempt", "runs", "frames_total", "frames_done", "frames_fail
 
 @dataclass(frozen=True)
 class JobOptions:
-    """What the user asked for: the configuration, frames per recording, mode, reports."""
+    """What the user asked for: the configuration, frames per recording, mode, reports, and
+    a baseline configuration to compare with."""
 
     config: str = "prox"
     frames: int | None = None
@@ -48,14 +49,16 @@ class JobOptions:
     gender: str = "neutral"
     genders: dict[str, str] | None = None  # per recording
     hand_pca: int = 12
+    baseline: str | None = None  # a configuration also fitted, for the reports' comparison
 
-    def fit_config(self, model_dir: Path | None) -> FitConfig:
-        """The fitting configuration with this job's body model; PROX's ``body_segments/``
-        and VPoser's ``vposer_v1_0/`` are used when the operator's model folder has them."""
+    def fit_config(self, model_dir: Path | None, name: str | None = None) -> FitConfig:
+        """The fitting configuration (``name``, default the job's) with this job's body
+        model; PROX's ``body_segments/`` and VPoser's ``vposer_v1_0/`` are used when the
+        operator's model folder has them."""
         extras = {name: model_dir / name if model_dir and (model_dir / name).is_dir() else None
                   for name in ("body_segments", "vposer_v1_0")}
         return dataclasses.replace(
-            load_config(self.config), model=self.model, gender=self.gender,
+            load_config(name or self.config), model=self.model, gender=self.gender,
             hand_pca=self.hand_pca, model_path=str(model_dir) if model_dir else None,
             body_segments=str(extras["body_segments"]) if extras["body_segments"] else None,
             vposer_path=str(extras["vposer_v1_0"]) if extras["vposer_v1_0"] else None)

@@ -34,6 +34,7 @@ class JobView(BaseModel):
     render_every: int
     model: str
     gender: str
+    baseline: str | None  # configuration also fitted for the reports' compare.html
     recordings: dict[str, int]  # recording -> frames to fit
     progress: Progress
     timings: Timings
@@ -82,7 +83,7 @@ def job_view(record: dict, base: str, report_key: str | None = None) -> JobView:
         frames=options["frames"], sequence=options["sequence"],
         report=options["report"], render_every=options["render_every"],
         model=options["model"], gender=options["gender"],
-        recordings=record["recordings"],
+        baseline=options.get("baseline"), recordings=record["recordings"],
         progress=Progress(frames_done=record["frames_done"], frames_total=total,
                           frames_failed=record["frames_failed"],
                           fraction=round(record["frames_done"] / total, 4) if total else 0.0,

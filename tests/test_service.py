@@ -217,6 +217,32 @@ def check_report_access(stack: LocalStack, job: dict, frame: str) -> None:
     assert browser.get(f"{base}/{REC}/report/../../../upload.zip").status_code == 404
 
 
+def test_a_baseline_is_fitted_and_compared_in_the_report(stack, dataset_zip):
+    http = client(stack)
+    assert submit(http, dataset_zip, config="rgb", baseline="rgb").status_code == 422
+    assert submit(http, dataset_zip, baseline="nope").json()["detail"].startswith(
+        "unknown baseline 'nope'")
+    assert submit(http, dataset_zip, baseline="rgb", report="false").status_code == 422
+    answer = submit(http, dataset_zip, config="rgb+penetration", baseline="rgb", frames="1")
+    assert answer.status_code == 202, answer.text
+    stages = set()
+    job = wait(http, answer.json()["id"],
+               lambda j: stages.add(j["progress"]["stage"]) or ended(j))
+    assert job["status"] == "finished" and job["baseline"] == "rgb", job
+    assert job["progress"]["frames_done"] == 1
+    names = zipfile.ZipFile(io.BytesIO(http.get(job["links"]["results"]).content)).namelist()
+    assert {f"{REC}/baseline/summary.json", f"{REC}/report/compare.html"} <= set(names)
+    browser = httpx.Client(follow_redirects=True)
+    assert browser.get(job["links"]["report"]).status_code == 200  # sets the report cookie
+    base = f"{stack.url}/v1/jobs/{job['id']}/report/{REC}/report"
+    compare = browser.get(f"{base}/compare.html")
+    assert compare.status_code == 200 and "rgb+penetration against rgb" in compare.text
+    assert 'href="compare.html"' in browser.get(f"{base}/index.html").text
+    summary = json.loads(browser.get(f"{stack.url}/v1/jobs/{job['id']}/report/{REC}/"
+                                     "baseline/summary.json").text)
+    assert summary["config"] == "rgb" and summary["frames_fitted"] == 1
+
+
 def test_an_smplx_job_uses_the_operators_model_files(stack, dataset_zip):
     http = client(stack)
     answer = submit(http, dataset_zip, config="rgb", frames="1", model="smplx",

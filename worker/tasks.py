@@ -22,6 +22,7 @@ from service.storage import LocalStorage, Storage, zip_tree
 from service.upload import UploadError, extract_upload
 
 HEARTBEAT_S = 5.0
+BASELINE = "baseline"  # results/<rec>/baseline/: the fit with the job's baseline configuration
 SCRATCH_PREFIX = "prox-job-"  # a job attempt's scratch folder: prox-job-<id>-<random>
 
 
@@ -101,8 +102,10 @@ def _reports(out: Path, data: Path, recordings: list[str], options: JobOptions, 
         if not (out / name / "summary.json").exists():
             continue
         update(stage="report", recording=name)
+        compare = out / name / BASELINE
         try:
-            build_report(out / name, data=data, every=options.render_every)
+            build_report(out / name, data=data, every=options.render_every,
+                         baseline=compare if compare.is_dir() else None)
         except Exception as exc:  # noqa: BLE001 - the fit stands without its report
             errors.append({"recording": name, "error": f"report failed ({exc})"})
     write_index(out, recordings, f"prox job {job_id}")
@@ -136,6 +139,8 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
                           options.frames).relative_to(data)
     upload.unlink()
     config = options.fit_config(settings.model_dir)
+    baseline = (options.fit_config(settings.model_dir, options.baseline)
+                if options.baseline else None)
     bodies: dict[str, BodyModel] = {}
     out = scratch / "results"
     done = failed = 0
@@ -146,8 +151,8 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
                      ) -> None:
             update(frames_done=offset + n, recording=rec)
 
-        def on_stage(stage: str, rec: str = name) -> None:
-            update(stage=stage, recording=rec)
+        def on_stage(stage: str, rec: str = name, prefix: str = "") -> None:
+            update(stage=prefix + stage, recording=rec)
 
         gender = options.gender_of(name)
         if gender not in bodies:
@@ -165,6 +170,15 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
             errors.append({"recording": name, "error": str(exc)})
             done += record["recordings"][name]
             continue
+        if baseline is not None and result.summary["frames_fitted"]:
+            # the same frames with the baseline configuration: results/<rec>/baseline/
+            with contextlib.chdir(data):
+                fit_recording(base, name, scratch / "baseline", baseline, body,
+                              max_frames=options.frames, sequence=options.sequence,
+                              on_stage=lambda stage, rec=name: on_stage(stage, rec,
+                                                                        "baseline "),
+                              source=f"the upload of job {job_id}")
+            (scratch / "baseline" / name).rename(out / name / BASELINE)
         summary = result.summary
         done += summary["frames_fitted"] + summary["frames_failed"]
         failed += summary["frames_failed"]

@@ -63,24 +63,36 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
                                                            '{"<recording>": "female"}')] = None,
            hand_pca: Annotated[int, Form(ge=0, le=45, description="SMPL-X hand PCA "
                                                                   "components; 0: every "
-                                                                  "finger joint")] = 12
+                                                                  "finger joint")] = 12,
+           baseline: Annotated[str | None, Form(description="also fit this configuration "
+                                                            "(e.g. rgb) and add its "
+                                                            "comparison, compare.html, to "
+                                                            "each report")] = None
            ) -> JobView:
-    if config not in CONFIGS:
-        raise ApiError(422, f"unknown config '{config}' (choose one of {', '.join(CONFIGS)})")
+    for option, name in (("config", config), ("baseline", baseline)):
+        if name is not None and name not in CONFIGS:
+            raise ApiError(422, f"unknown {option} '{name}' (choose one of "
+                                f"{', '.join(CONFIGS)})")
+    if baseline == config:
+        raise ApiError(422, f"baseline '{baseline}' is the job's own configuration")
+    if baseline is not None and not report:
+        raise ApiError(422, "a baseline is fitted for the reports' comparison: it needs "
+                            "report=true")
     job_id = store.new_id()
     with tempfile.NamedTemporaryFile(suffix=".zip") as upload:
         shutil.copyfileobj(file.file, upload, _CHUNK)
         upload.flush()
         try:
             summary = validate_upload(Path(upload.name), settings.upload_limits(), frames,
-                                      needs_depth=load_config(config).uses("depth"))
+                                      needs_depth=any(load_config(c).uses("depth")
+                                                      for c in (config, baseline) if c))
         except UploadError as exc:
             raise ApiError(exc.status, str(exc), file=exc.file) from exc
         per_recording = _check_body(settings, model, gender, genders, summary.recordings)
         storage.put_file(f"jobs/{job_id}/upload.zip", Path(upload.name))
         size = Path(upload.name).stat().st_size
     options = JobOptions(config, frames, sequence, report, render_every, model, gender,
-                         per_recording, hand_pca)
+                         per_recording, hand_pca, baseline)
     try:
         record = store.create(job_id, owner, options, summary.recordings, size)
     except BaseException:  # e.g. Redis down (a 503): no job, so no stored upload either
