@@ -38,8 +38,8 @@ from prox_engine.output import atomic_write_text
 from prox_engine.scene import Scene
 from prox_engine.scene_sdf import compute_sdf
 from prox_engine.synthetic import (HEIGHT, WIDTH, frame_name, look_at, open_box,
-                                   openpose_person, project, transform, write_frame,
-                                   write_scene)
+                                   openpose_person, paint, project, transform, write_frame,
+                                   write_photos, write_scene)
 
 from . import detector
 from .poses import sample_phenotype, stature
@@ -76,7 +76,8 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
     bounds = room_bounds(vertices, furniture, cam2world[:3, 3], rng)
     furniture += distractors(bounds, vertices, furniture, cam2world[:3, 3], kind, rng)
     registration = misregistration(rng)
-    write_scene(out, scene, scan(bounds, furniture, vertices, rng), cam2world @ registration)
+    mesh = paint(scan(bounds, furniture, vertices, rng))
+    write_scene(out, scene, mesh, cam2world @ registration)
 
     to_cam = np.linalg.inv(cam_local)
     occluders = transform(trimesh.util.concatenate(furniture).triangles,
@@ -98,6 +99,7 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
                                     occluders, sigma, rng, cond)
         occluded += hidden
         write_frame(out, rec, name, people, verts_cam, kp_cam[:N_BODY])
+    write_photos(out, rec, list(zip(names, vertices)), body.faces.numpy(), mesh, cam2world)
     meta = {"kind": kind, "scene": scene, "seed": seed, "phenotype": phenotype,
             "stature_m": stature(body, phenotype), "frames": names,
             "contact_parts": staging.contacts, "camera_distance_m": round(distance, 3),

@@ -216,7 +216,7 @@ class SceneRenderer:
     def overlay(self, image: np.ndarray, bodies: list[BodyMesh], alpha: float = 0.8
                 ) -> np.ndarray:
         """The bodies drawn over the RGB ``image`` as the camera saw them (H, W, 3) uint8."""
-        from PIL import Image
+        from PIL import Image, ImageFilter
 
         h, w = image.shape[:2]
         canvas = np.full((self.height, self.width, 3), 255, dtype=np.uint8)
@@ -226,7 +226,10 @@ class SceneRenderer:
         top, left = (self.height - resized.shape[0]) // 2, (self.width - resized.shape[1]) // 2
         canvas[top:top + resized.shape[0], left:left + resized.shape[1]] = resized
         colour, depth = self._draw("camera", [b.mesh for b in bodies], with_scene=False)
-        a = (depth[..., None] > 0) * alpha
+        # soft edges: the body's mask blurred by about a pixel
+        mask = Image.fromarray(((depth > 0) * 255).astype(np.uint8)).filter(
+            ImageFilter.GaussianBlur(1.0))
+        a = np.asarray(mask, dtype=float)[..., None] / 255 * alpha
         return (canvas * (1 - a) + colour * a).astype(np.uint8)
 
     def close(self) -> None:

@@ -107,6 +107,53 @@ def chair(local: np.ndarray, parts: np.ndarray, width: float = 0.5,
     return trimesh.util.concatenate(boxes)
 
 
+FLOOR_WOOD, WALL_PAINT, FURNITURE = (0.56, 0.42, 0.30), (0.86, 0.84, 0.78), (0.42, 0.48, 0.58)
+SKIN = (0.88, 0.62, 0.50)
+
+
+def paint(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Give a synthetic scan vertex colours as a real scan has (PROX's do): wooden floor
+    boards, painted walls, furniture in another colour; deterministic, so that painting
+    draws nothing from a data set's random stream."""
+    v, n = mesh.vertices, mesh.vertex_normals
+    lo, hi = v.min(0), v.max(0)
+    colours = np.tile(FURNITURE, (len(v), 1))
+    wall = ((np.minimum(v[:, :2] - lo[:2], hi[:2] - v[:, :2]).min(1) < 0.05)
+            & (np.abs(n[:, 2]) < 0.3))
+    floor = (v[:, 2] < lo[2] + 0.03) & (n[:, 2] > 0.7)
+    colours[wall] = WALL_PAINT
+    boards = 0.92 + 0.08 * (np.floor(v[:, 0] / 0.15) % 2)  # 15 cm boards
+    colours[floor] = np.outer(boards[floor], FLOOR_WOOD)
+    mesh.visual.vertex_colors = np.column_stack([np.round(colours * 255),
+                                                 np.full(len(v), 255)]).astype(np.uint8)
+    return mesh
+
+
+def write_photos(out: Path, rec: str, frames: list[tuple[str, np.ndarray]], faces: np.ndarray,
+                 scene: trimesh.Trimesh, cam2world: np.ndarray) -> None:
+    """``recordings/<rec>/Color/<frame>.jpg``: the scene and the true body (world-frame
+    vertices per frame) as the camera saw them, slightly soft like a photograph."""
+    from PIL import Image, ImageFilter
+
+    from .camera import Camera
+    from .render import BodyMesh, SceneRenderer
+
+    colours = np.asarray(scene.visual.vertex_colors, dtype=float) / 255
+    camera = Camera(*INTRINSICS["f"], *INTRINSICS["c"], width=WIDTH, height=HEIGHT)
+    every = np.concatenate([v for _, v in frames])
+    renderer = SceneRenderer(scene.vertices, scene.faces, colours, camera, cam2world,
+                             np.stack([every.min(0), every.max(0)]), WIDTH, HEIGHT)
+    folder = out / "recordings" / rec / "Color"
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        for name, vertices in frames:
+            image = renderer.render("camera", [BodyMesh(vertices, faces, SKIN)])
+            Image.fromarray(image).filter(ImageFilter.GaussianBlur(0.8)).save(
+                folder / f"{name}.jpg", quality=88)
+    finally:
+        renderer.close()
+
+
 def transform(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     """Points (..., 3) through a 4x4 rigid transform."""
     return points @ matrix[:3, :3].T + matrix[:3, 3]
@@ -191,6 +238,7 @@ def make_sitting_dataset(out: Path, frames: int = 3, seed: int = 0, noise_px: fl
     scene = trimesh.util.concatenate([room, seat, table])
     scene = scene.subdivide_to_size(face_size)
     scene.vertices += rng.normal(0.0, 0.002, scene.vertices.shape)
+    paint(scene)
 
     # Camera 2.6 m in front of the person at 1.3 m height.
     facing = rot @ np.array([0.0, -1.0, 0.0])
@@ -207,6 +255,8 @@ def make_sitting_dataset(out: Path, frames: int = 3, seed: int = 0, noise_px: fl
         conf[RIGHT_HAND] *= 0.6
         write_frame(out, rec, frame_name(t), [openpose_person(uv, conf)],
                     transform(world_vertices[t], world2cam), kp_cam[:N_BODY])
+    write_photos(out, rec, [(frame_name(t), v) for t, v in enumerate(world_vertices)],
+                 body.faces.numpy(), scene, cam2world)
     return out
 
 

@@ -13,6 +13,8 @@ from benchmarks.evaluate import procrustes
 from benchmarks.generate import ground_truth_check, make_benchmark
 from prox_engine.keypoints import load_keypoints
 
+from .test_render import skin_at_torso
+
 
 def test_procrustes_removes_a_similarity_transform():
     rng = np.random.default_rng(0)
@@ -33,6 +35,8 @@ def test_generated_truth_touches_without_penetrating(tmp_path, body):
     assert check["penetration"] < 0.005
     assert all(frames == 2 for frames in check["touching"].values()), check["touching"]
     assert {"left_hand", "right_hand"} <= set(check["touching"])
+    # the photographs show the true body where the camera sees it (through the true pose)
+    assert skin_at_torso(tmp_path, rec) == [True, True]
     # The fitter's inputs hold no ground truth; a ghost person never wins the selection.
     assert not any("ground_truth" in str(p) for p in (tmp_path / "keypoints").rglob("*"))
     for path in sorted((tmp_path / "keypoints" / rec).glob("*.json")):

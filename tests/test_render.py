@@ -114,6 +114,13 @@ def test_overlay_draws_the_body_over_the_image(room):
     assert image[v, u, 0] > 100 and image[v, u, 2] < 120  # mostly the body
     assert tuple(image[v, u + 80]) == (0, 0, 200)  # the photograph, untouched
     assert tuple(image[5, 5]) == (255, 255, 255)  # the margin of a 4:3 image in 16:9
+    # soft edges: the body's opacity, read from overlays on a black and a white image,
+    # passes through values between none and full along the silhouette
+    black, white = (renderer.overlay(np.full((480, 640, 3), level, dtype=np.uint8),
+                                     [_yellow(body)]).astype(int) for level in (0, 255))
+    opacity = 1 - (white - black).mean(-1) / 255  # 1 in the margins, which are no image
+    edge = (opacity > 0.05) & (opacity < 0.75)
+    assert edge.sum() > 200 and opacity[opacity < 0.99].max() == pytest.approx(0.8, abs=0.01)
 
 
 def test_penetrating_vertices_show_through_the_surface_they_penetrate(room):
@@ -143,3 +150,29 @@ def test_penetrating_vertices_show_through_the_surface_they_penetrate(room):
     # Above the block the body is visible and not flagged: still yellow.
     u, v = _projected_centre(camera, cam2world)
     assert _is_yellow(flagged[v, u]), flagged[v, u]
+
+
+def skin_at_torso(data, rec: str) -> list[bool]:
+    """Per frame: whether the photograph shows skin where the true torso joints project."""
+    from PIL import Image
+
+    from prox_engine.dataset import load_calibration
+
+    camera = load_calibration(data / "calibration" / "Color.json")
+    seen = []
+    for truth in sorted((data / "ground_truth" / rec).glob("*.npz")):
+        joints = np.load(truth)["joints"][[1, 2, 5, 8, 9, 12]]  # neck, shoulders, hips
+        uv = np.round(joints[:, :2] / joints[:, 2:] * [camera.fx, camera.fy]
+                      + [camera.cx, camera.cy]).astype(int)
+        photo = np.asarray(Image.open(data / "recordings" / rec / "Color"
+                                      / f"{truth.stem}.jpg").convert("RGB")).astype(int)
+        pixels = photo[uv[:, 1], uv[:, 0]]
+        r, g, b = pixels.T  # skin: redder than the walls (r - g ~ 3) and the floor (~ 16)
+        seen.append(bool(((r > b + 30) & (r > g + 20)).all()))
+    return seen
+
+
+def test_synthetic_photographs_show_the_true_body_where_its_keypoints_are(sitting_data):
+    """The demo's colour images are rendered from the ground truth with the calibration's
+    camera: skin wherever the true torso joints project (not mirrored, not shifted)."""
+    assert skin_at_torso(sitting_data, "Synthetic_00000_01") == [True, True]
