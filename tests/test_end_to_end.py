@@ -24,6 +24,11 @@ def test_outputs_in_prox_layout(cli_fits, body):
     assert len(mesh.vertices) == 13718
     assert np.array_equal(np.asarray(mesh.faces), body.faces.numpy())  # anny's vertex order
     assert "s/frame" in run.stdout and REC in run.stdout
+    # written atomically, yet as readable as a plain open() makes files (not mkstemp's 0600)
+    from prox_engine.output import UMASK
+    for path in (out / REC / "summary.json", out / REC / "report" / "index.html",
+                 out / REC / "report" / "sequence.mp4"):
+        assert path.stat().st_mode & 0o777 == 0o666 & ~UMASK, path
 
 
 def test_rgb_fit_follows_the_keypoints(cli_fits):
