@@ -39,6 +39,7 @@ class FitResult:
     losses: dict[str, float]  # weighted value of each term at the end
     seconds: float
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    stage_evaluations: dict[str, float] = field(default_factory=dict)  # body rows per frame
     events: list[str] = field(default_factory=list)  # numerical trouble met on the way
     swapped: list[str] = field(default_factory=list)  # parts whose sides were relabelled
 
@@ -59,14 +60,29 @@ class Fitter:
         self.contact_ids = (torch.cat(self.contact_part_ids) if self.contact_part_ids
                             else torch.zeros(0, dtype=torch.long))
         self.events: list[str] = []  # of the current fit (see FitResult.events)
+        self.evaluations = 0  # body rows evaluated in the current fit
 
     # ------------------------------------------------------------------ public API
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
             previous_keypoints: torch.Tensor | None = None) -> list[FitResult]:
         """Fit a batch of frames: from scratch with every stage, or (sequence mode) from
         ``warm_start`` with the configuration's sequence stages and the temporal term."""
+        hook = self.body.register_forward_pre_hook(self._count)
+        try:
+            return self._fit(frames, warm_start, previous_keypoints)
+        finally:
+            hook.remove()
+
+    def _count(self, _module: torch.nn.Module, inputs: tuple) -> None:
+        """Forward pre-hook: body rows evaluated (a batch of B bodies counts B)."""
+        self.evaluations += len(inputs[0]["transl"])
+
+    def _fit(self, frames: list[Frame], warm_start: Params | None,
+             previous_keypoints: torch.Tensor | None) -> list[FitResult]:
         start = time.perf_counter()
         self.events = []
+        self.evaluations = 0
+        stage_evaluations: dict[str, int] = {}
         target, conf = self._targets(frames)
         conf[:, self.config.ignore_keypoints] = 0
         depth = [f.depth_points for f in frames]
@@ -76,6 +92,7 @@ class Fitter:
             self._announce("initialise")
             params, labels = self.initialise(frames)
             stage_seconds["initialise"] = time.perf_counter() - start
+            stage_evaluations["initialise"] = self.evaluations
             stages = self.config.stages
             frozen_shape = False
         else:
@@ -95,10 +112,13 @@ class Fitter:
         rescaled = warm_start is not None or not self.config.scale_search
         for index, stage in enumerate(stages):
             self._announce(stage.name)
-            t0 = time.perf_counter()
             if not rescaled and self._scene_stage(stage):
+                t0, before = time.perf_counter(), self.evaluations
                 self._rescale(params)
+                stage_seconds["scale_search"] = time.perf_counter() - t0
+                stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
+            t0, before = time.perf_counter(), self.evaluations
             free = ["transl", "global_orient", *self.body.pose_group()]
             if stage.optimize_shape and not frozen_shape:
                 free += self.body.shape_group()
@@ -115,14 +135,19 @@ class Fitter:
                 keep = 1
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
+            stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
+                                             + self.evaluations - before)
+        before = self.evaluations
         with torch.no_grad():
             out = self.body(params)
+        stage_evaluations["output"] = self.evaluations - before
         elapsed = (time.perf_counter() - start) / len(frames)
         return [FitResult(
             name=f.name, params={k: v[i:i + 1].detach().clone() for k, v in params.items()},
             vertices=out.vertices[i].detach(), keypoints=out.keypoints[i].detach(),
             losses={k: float(v[i]) for k, v in final.items()}, seconds=elapsed,
             stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()},
+            stage_evaluations={k: v / len(frames) for k, v in stage_evaluations.items()},
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
 

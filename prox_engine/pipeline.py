@@ -125,7 +125,12 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     joints = result.keypoints[BODY]
     stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
              "root_m": [round(float(x), 4) for x in joints[BODY_25.index("mid_hip")]],
-             "seconds": result.seconds, "events": result.events,
+             "seconds": result.seconds,
+             "body_evaluations": round(sum(result.stage_evaluations.values()), 1),
+             "profile": {stage: {"seconds": round(result.stage_seconds.get(stage, 0.0), 4),
+                                 "body_evaluations": round(evaluations, 1)}
+                         for stage, evaluations in result.stage_evaluations.items()},
+             "events": result.events,
              "sides_swapped": result.swapped,
              "flags": quality.frame_flags(scene_stats, result.vertices, joints,
                                           frame.keypoints.confidence, scene)}
@@ -138,7 +143,8 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
         "frame": frame.name, "config": config.name, "sequence": sequence, **params,
         "losses": result.losses, "stats": stats,
         "vertices_flagged": flagged,
-        "timings": {"seconds": result.seconds, "stages": result.stage_seconds},
+        "timings": {"seconds": result.seconds, "stages": result.stage_seconds,
+                    "body_evaluations": result.stage_evaluations},
     })
     atomic_write_bytes(ply_path, ply_bytes(result.vertices.numpy(), body.faces.numpy()))
     prox_result = body.prox_result(result.params, 0)
@@ -172,8 +178,23 @@ def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
                            if f["flags"]],
         "reprojection_error_px": mean("reprojection_error_px"),
         "seconds_per_frame": mean("seconds"),
+        "body_evaluations_per_frame": mean("body_evaluations"),
+        "profile": _profile(frames),
         "scene_setup_seconds": scene_seconds,
         "threads": torch.get_num_threads(),
         "data": source,
         "frames": frames,
     }
+
+
+def _profile(frames: list[dict]) -> dict[str, dict[str, float]]:
+    """Per stage, in the order they ran, the mean seconds and body evaluations (rows of a
+    batch) per frame: where a fit's time goes."""
+    stages: dict[str, dict[str, float]] = {}
+    for frame in frames:
+        for stage, cost in frame["profile"].items():
+            total = stages.setdefault(stage, {"seconds": 0.0, "body_evaluations": 0.0})
+            for key in total:
+                total[key] += cost[key] / len(frames)
+    return {stage: {key: round(value, 4 if key == "seconds" else 1)
+                    for key, value in total.items()} for stage, total in stages.items()}

@@ -185,6 +185,29 @@ def test_several_starts_keep_each_frame_its_own_body(body):
         assert float(error.median()) < 15
 
 
+def test_body_evaluations_are_counted_per_stage_and_frame(body):
+    """The profile counts every body row evaluated (a batch of B counts B), per stage and
+    per frame, as an independent hook on the body sees them; and the hook is removed."""
+    cam2world = tilted_camera()
+    config = FitConfig("short", [Stage("global", {"body": 1.0, "pose_prior": 30.0}),
+                                 Stage("body", {"body": 1.0, "pose_prior": 10.0})],
+                       max_iter=5, max_calls=1, start_candidates=2, start_stages=1)
+    frames = [frame_of(standing_person(body, cam2world, yaw)[1]) for yaw in (0.0, 0.7)]
+    rows = []
+    witness = body.register_forward_pre_hook(
+        lambda _m, inputs: rows.append(len(inputs[0]["transl"])))
+    try:
+        results = Fitter(body, CAMERA, config).fit(frames)
+    finally:
+        witness.remove()
+    counted = results[0].stage_evaluations
+    assert list(counted) == ["initialise", "global", "body", "output"]
+    assert sum(counted.values()) * len(frames) == sum(rows) > 0
+    assert counted["global"] > counted["body"] > 0  # the global stage fits two starts a frame
+    assert results[1].stage_evaluations == counted
+    assert len(body._forward_pre_hooks) == 0
+
+
 def test_stage_reports_terms_at_the_accepted_point(body):
     """The losses a fit reports are the terms at its final parameters (not at the line
     search's last probe)."""
