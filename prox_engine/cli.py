@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -42,6 +43,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     _threads()
     config = _config_with_body(args)
+    if args.batch is not None:
+        config = dataclasses.replace(config, batch_size=args.batch)
     recordings = args.recording or list_recordings(args.base)
     genders = _genders(args.genders) if args.genders else {}
     bodies: dict[str, object] = {}
@@ -93,8 +96,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def _config_with_body(args: argparse.Namespace) -> FitConfig:
     """The configuration with the body-model options of the command line applied."""
-    import dataclasses
-
     from .config import load_config
 
     options = {"model": args.model, "model_path": args.model_path, "gender": args.gender,
@@ -102,6 +103,13 @@ def _config_with_body(args: argparse.Namespace) -> FitConfig:
                "vposer_path": args.vposer_path}
     return dataclasses.replace(load_config(args.config),
                                **{k: v for k, v in options.items() if v is not None})
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: give 1 or more")
+    return value
 
 
 def _genders(path: Path) -> dict[str, str]:
@@ -266,8 +274,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", default="prox",
                    help=f"{builtin} | FILE.yaml (default prox)")
     p.add_argument("--frames", type=int, help="fit only the first N frames")
-    p.add_argument("--sequence", action="store_true",
-                   help="warm-start each frame from the previous fit")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--sequence", action="store_true",
+                      help="warm-start each frame from the previous fit")
+    mode.add_argument("--batch", type=_positive, metavar="N",
+                      help="fit N frames of a recording together (default: the "
+                           "configuration's batch_size, 1)")
     p.add_argument("--progress", action="store_true", help="progress bar even when not a tty")
     p.add_argument("--model", choices=BODY_MODELS,
                    help="body model (default: the configuration's, anny)")

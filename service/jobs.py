@@ -50,6 +50,7 @@ class JobOptions:
     genders: dict[str, str] | None = None  # per recording
     hand_pca: int = 12
     baseline: str | None = None  # a configuration also fitted, for the reports' comparison
+    batch: int = 1  # frames of a recording fitted together (single-frame mode)
 
     def fit_config(self, model_dir: Path | None, name: str | None = None) -> FitConfig:
         """The fitting configuration (``name``, default the job's) with this job's body
@@ -58,7 +59,7 @@ class JobOptions:
         extras = {name: model_dir / name if model_dir and (model_dir / name).is_dir() else None
                   for name in ("body_segments", "vposer_v1_0")}
         return dataclasses.replace(
-            load_config(name or self.config), model=self.model, gender=self.gender,
+            load_config(name or self.config), batch_size=self.batch, model=self.model, gender=self.gender,
             hand_pca=self.hand_pca, model_path=str(model_dir) if model_dir else None,
             body_segments=str(extras["body_segments"]) if extras["body_segments"] else None,
             vposer_path=str(extras["vposer_v1_0"]) if extras["vposer_v1_0"] else None)

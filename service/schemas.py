@@ -35,6 +35,7 @@ class JobView(BaseModel):
     model: str
     gender: str
     baseline: str | None  # configuration also fitted for the reports' compare.html
+    batch: int  # frames of a recording fitted together
     recordings: dict[str, int]  # recording -> frames to fit
     progress: Progress
     timings: Timings
@@ -83,7 +84,8 @@ def job_view(record: dict, base: str, report_key: str | None = None) -> JobView:
         frames=options["frames"], sequence=options["sequence"],
         report=options["report"], render_every=options["render_every"],
         model=options["model"], gender=options["gender"],
-        baseline=options.get("baseline"), recordings=record["recordings"],
+        baseline=options.get("baseline"), batch=options.get("batch", 1),
+        recordings=record["recordings"],
         progress=Progress(frames_done=record["frames_done"], frames_total=total,
                           frames_failed=record["frames_failed"],
                           fraction=round(record["frames_done"] / total, 4) if total else 0.0,

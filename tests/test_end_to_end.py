@@ -57,6 +57,23 @@ def test_bad_frame_is_reported_and_skipped(sitting_data, tmp_path):
     assert summary["frames_fitted"] == 1 and summary["frames_failed"] == 1
 
 
+def test_batched_frames_fit_like_single_frames(sitting_data, tmp_path, cli_fits):
+    """--batch 2 fits both frames as one batch: each keeps its own body, as close to its
+    keypoints as when fitted alone, and the profile counts the batch's body evaluations
+    per frame."""
+    run = cli_fit(sitting_data, tmp_path / "out", coarse_config(tmp_path, "rgb"),
+                  "--frames", "2", "--batch", "2", "--no-report")
+    assert run.returncode == 0, run.stderr
+    batched = json.loads((tmp_path / "out" / REC / "summary.json").read_text())
+    single = json.loads((cli_fits["rgb"][0] / REC / "summary.json").read_text())
+    assert batched["frames_fitted"] == 2
+    for b, s in zip(batched["frames"], single["frames"]):
+        assert b["frame"] == s["frame"]
+        assert b["reprojection_error_px"] < s["reprojection_error_px"] + 3
+    assert 0 < batched["body_evaluations_per_frame"] == sum(
+        stage["body_evaluations"] for stage in batched["profile"].values())
+
+
 def test_missing_scene_is_a_clear_error(sitting_data, tmp_path):
     base = tmp_path / "data"
     shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth", "scenes"))

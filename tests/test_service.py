@@ -223,12 +223,14 @@ def test_a_baseline_is_fitted_and_compared_in_the_report(stack, dataset_zip):
     assert submit(http, dataset_zip, baseline="nope").json()["detail"].startswith(
         "unknown baseline 'nope'")
     assert submit(http, dataset_zip, baseline="rgb", report="false").status_code == 422
-    answer = submit(http, dataset_zip, config="rgb+penetration", baseline="rgb", frames="1")
+    assert submit(http, dataset_zip, sequence="true", batch="2").status_code == 422
+    answer = submit(http, dataset_zip, config="rgb+penetration", baseline="rgb", frames="1",
+                    batch="2")
     assert answer.status_code == 202, answer.text
     stages = set()
     job = wait(http, answer.json()["id"],
                lambda j: stages.add(j["progress"]["stage"]) or ended(j))
-    assert job["status"] == "finished" and job["baseline"] == "rgb", job
+    assert job["status"] == "finished" and job["baseline"] == "rgb" and job["batch"] == 2, job
     assert job["progress"]["frames_done"] == 1
     names = zipfile.ZipFile(io.BytesIO(http.get(job["links"]["results"]).content)).namelist()
     assert {f"{REC}/baseline/summary.json", f"{REC}/report/compare.html"} <= set(names)

@@ -67,12 +67,17 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
            baseline: Annotated[str | None, Form(description="also fit this configuration "
                                                             "(e.g. rgb) and add its "
                                                             "comparison, compare.html, to "
-                                                            "each report")] = None
+                                                            "each report")] = None,
+           batch: Annotated[int, Form(ge=1, le=64, description="frames of a recording "
+                                                             "fitted together (not with "
+                                                             "sequence)")] = 1
            ) -> JobView:
     for option, name in (("config", config), ("baseline", baseline)):
         if name is not None and name not in CONFIGS:
             raise ApiError(422, f"unknown {option} '{name}' (choose one of "
                                 f"{', '.join(CONFIGS)})")
+    if sequence and batch > 1:
+        raise ApiError(422, "sequence mode fits one frame after another: batch must be 1")
     if baseline == config:
         raise ApiError(422, f"baseline '{baseline}' is the job's own configuration")
     if baseline is not None and not report:
@@ -92,7 +97,7 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
         storage.put_file(f"jobs/{job_id}/upload.zip", Path(upload.name))
         size = Path(upload.name).stat().st_size
     options = JobOptions(config, frames, sequence, report, render_every, model, gender,
-                         per_recording, hand_pca, baseline)
+                         per_recording, hand_pca, baseline, batch)
     try:
         record = store.create(job_id, owner, options, summary.recordings, size)
     except BaseException:  # e.g. Redis down (a 503): no job, so no stored upload either
