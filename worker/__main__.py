@@ -2,7 +2,9 @@
 
 Each job runs in a forked work-horse, so a job that crashes or is killed takes only its
 horse down; the worker reports the loss and the job is retried once or failed. The parent
-imports torch but never runs it, which keeps forks cheap and safe (see README, Service).
+loads the default body model and runs it once on one thread before it forks (every horse
+inherits it warm, so no job pays for loading it), and never renders (a forked child's
+OpenGL context hangs; see docs/service.md).
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from rq import Worker
 
 from service.jobs import JobStore
 from service.settings import Settings
-from worker.tasks import clean_scratch
+from worker.tasks import clean_scratch, preload
 
 # A worker that stops heart-beating drops out of /healthz after this long.
 WORKER_TTL_S = 60
@@ -45,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         store.worker_lost(job_id, attempt, f"its worker process died ({how})")
         clean_scratch(store, job_id)
 
-    import torch  # noqa: F401  imported, never run, in the parent: forks start warm
+    logging.info("body model loaded and warmed in %.1f s", preload())
 
     try:
         for folder in clean_scratch(store):

@@ -45,6 +45,39 @@ def clean_scratch(store: JobStore, job_id: str | None = None) -> list[Path]:
     return removed
 
 
+_BODIES: dict[tuple, BodyModel] = {}  # loaded in this process; forked horses inherit them
+
+
+def body_for(config, gender: str) -> BodyModel:
+    """The body model a job's configuration names, loaded once per process: the worker
+    loads the default (anny) before it forks its first horse (:func:`preload`), so that no
+    job pays for loading it."""
+    from prox_engine.body import load_body
+
+    key = (("anny",) if config.model == "anny" else
+           (config.model, gender, config.model_path, config.hand_pca, config.body_segments,
+            config.vposer_path))
+    if key not in _BODIES:
+        _BODIES[key] = load_body(config, gender)
+    return _BODIES[key]
+
+
+def preload() -> float:
+    """Load the default body model and run it forwards and backwards once (which loads its
+    compiled kernels), in the worker before it forks; returns the seconds it took."""
+    import torch
+
+    from prox_engine.config import load_config
+
+    start = time.perf_counter()
+    torch.set_num_threads(int(os.environ.get("PROX_THREADS", "1")))
+    body = body_for(load_config("prox"), "neutral")
+    params = body.init_params(1)
+    params["body_pose"].requires_grad_(True)
+    body(params).vertices.sum().backward()
+    return time.perf_counter() - start
+
+
 class JobAborted(Exception):
     """The job was cancelled, or this attempt superseded: stop without publishing."""
 
@@ -116,7 +149,6 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
          scratch: Path, heartbeat: _Heartbeat) -> str:
     import torch
 
-    from prox_engine.body import load_body
     from prox_engine.pipeline import fit_recording
 
     record = store.get(job_id)
@@ -141,7 +173,6 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     config = options.fit_config(settings.model_dir)
     baseline = (options.fit_config(settings.model_dir, options.baseline)
                 if options.baseline else None)
-    bodies: dict[str, BodyModel] = {}
     out = scratch / "results"
     done = failed = 0
     errors: list[dict] = []
@@ -155,9 +186,7 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
             update(stage=prefix + stage, recording=rec)
 
         gender = options.gender_of(name)
-        if gender not in bodies:
-            bodies[gender] = load_body(config, gender)
-        body = bodies[gender]
+        body = body_for(config, gender)
         try:
             # From inside the unpacked upload, so that every path in an error message or
             # summary reads as it does in the user's zip.
