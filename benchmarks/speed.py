@@ -1,0 +1,129 @@
+"""Where the time goes: per configuration and mode (single-frame, sequence, batched), the
+seconds and body-model evaluations per frame, and the seconds per frame divided by the time
+of one body forward+backward measured on the same machine in the same run (a ratio that
+does not depend on the machine), with the accuracy (PJE) to show nothing was lost.
+
+    .venv/bin/python -m benchmarks.speed --seed 1 --frames 8 --kinds sit walk --batch 8
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from prox_engine.body.anny_body import AnnyBody
+from prox_engine.config import load_config
+from prox_engine.output import atomic_write_text
+from prox_engine.dataset import Recording
+from prox_engine.pipeline import fit_recording, load_scene
+
+from .evaluate import aggregate, evaluate_recording, truth_scene
+from .generate import KINDS, make_benchmark
+
+
+def body_seconds(body: AnnyBody, free_shape: bool, repeats: int = 30) -> float:
+    """Median seconds of one forward+backward of a single body with its pose (and shape)
+    free, as the fitter's stages evaluate it."""
+    params = body.init_params(1)
+    free = ["transl", "global_orient", *body.pose_group()]
+    free += body.shape_group() if free_shape else []
+    for name in free:
+        params[name].requires_grad_(True)
+    times = []
+    for _ in range(repeats + 3):
+        start = time.perf_counter()
+        out = body(params)
+        (out.vertices.square().sum() + out.keypoints.square().sum()
+         + body.shape_prior(params).sum() * free_shape).backward()
+        times.append(time.perf_counter() - start)
+    return sorted(times[3:])[repeats // 2]
+
+
+def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
+        batch: int, sdf_dim: int = 256, log=print) -> dict:
+    """Fit every recording in every configuration and mode; returns the figures per
+    (configuration, mode) and the body's unit costs."""
+    torch.set_num_threads(1)
+    body = AnnyBody.load()
+    data = out / "data"
+    recordings = make_benchmark(data, seed=seed, frames=frames, kinds=kinds, body=body)
+    unit = {"frozen_shape": body_seconds(body, False), "free_shape": body_seconds(body, True)}
+    log(f"body forward+backward: {unit['frozen_shape'] * 1000:.1f} ms with the shape frozen, "
+        f"{unit['free_shape'] * 1000:.1f} ms free")
+    scenes = {rec: truth_scene(data, rec, sdf_dim) for rec in recordings}
+    for rec in recordings:  # the fitter's SDFs, cached on disk before anything is timed
+        load_scene(Recording(data, rec), sdf_dim)
+    modes = {"single": (1, False), "sequence": (1, True), f"batch {batch}": (batch, False)}
+    rows = {}
+    for name in configs:
+        for mode, (size, sequence) in modes.items():
+            config = dataclasses.replace(load_config(name), batch_size=size, sdf_dim=sdf_dim)
+            fitted = out / "fits" / name / mode.replace(" ", "")
+            wall, counted, evaluations, fit_seconds, errors = 0.0, 0, 0.0, 0.0, []
+            for rec in recordings:
+                start = time.perf_counter()
+                summary = fit_recording(data, rec, fitted, config, body,
+                                        sequence=sequence).summary
+                wall += time.perf_counter() - start
+                n = summary["frames_fitted"]
+                counted += n
+                evaluations += summary["body_evaluations_per_frame"] * n
+                fit_seconds += summary["seconds_per_frame"] * n
+                errors += evaluate_recording(data, rec, fitted, body, scenes[rec])
+            rows[(name, mode)] = {
+                "wall_seconds_per_frame": wall / counted,
+                "fit_seconds_per_frame": fit_seconds / counted,
+                "body_evaluations_per_frame": evaluations / counted,
+                "ratio": fit_seconds / counted / unit["free_shape"],
+                "pje_mm": aggregate(errors)["pje"]}
+            log(f"{name:<10} {mode:<9} " + " ".join(f"{k} {v:.3g}"
+                                                    for k, v in rows[(name, mode)].items()))
+    return {"unit_seconds": unit, "rows": rows,
+            "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": batch,
+                         "sdf_dim": sdf_dim, "threads": torch.get_num_threads()}}
+
+
+def markdown(result: dict) -> str:
+    unit = result["unit_seconds"]
+    s = result["settings"]
+    text = (f"Seed {s['seed']}, {s['frames']} frames x {len(s['kinds'])} kinds, "
+            f"{s['threads']} thread. One body forward+backward: "
+            f"{unit['frozen_shape'] * 1000:.1f} ms (shape frozen), "
+            f"{unit['free_shape'] * 1000:.1f} ms (shape free; the ratio's unit).\n\n"
+            "| config | mode | s/frame (fit) | s/frame (wall) | body evaluations/frame "
+            "| s/frame / body eval | PJE mm |\n|---|---|---|---|---|---|---|\n")
+    for (name, mode), r in result["rows"].items():
+        text += (f"| {name} | {mode} | {r['fit_seconds_per_frame']:.2f} | "
+                 f"{r['wall_seconds_per_frame']:.2f} | {r['body_evaluations_per_frame']:.0f} | "
+                 f"{r['ratio']:.0f} | {r['pje_mm']:.1f} |\n")
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("speed_output"))
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--frames", type=int, default=8)
+    parser.add_argument("--kinds", nargs="+", default=["sit", "walk"], choices=KINDS)
+    parser.add_argument("--configs", nargs="+", default=["rgb", "prox"])
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--sdf-dim", type=int, default=256)
+    args = parser.parse_args(argv)
+    result = run(args.out, args.seed, args.frames, args.kinds, args.configs, args.batch,
+                 args.sdf_dim)
+    text = markdown(result)
+    args.out.mkdir(parents=True, exist_ok=True)
+    serialisable = {**result, "rows": [{"config": c, "mode": m, **r}
+                                       for (c, m), r in result["rows"].items()]}
+    atomic_write_text(args.out / "speed.json", json.dumps(serialisable, indent=1))
+    atomic_write_text(args.out / "speed.md", text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
