@@ -6,10 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from . import assets
-from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples,
+from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples, surface_tree,
                         triangle_signed_distance)
 
 
@@ -27,7 +26,7 @@ class Scene:
         self._triangles64 = tri
         self._normals64 = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
         samples, self._sample_face = surface_samples(self.vertices, self.faces, sample_spacing)
-        self._tree = cKDTree(samples)
+        self._tree = surface_tree(samples)
 
     @classmethod
     def load(cls, vertices: np.ndarray, faces: np.ndarray, cam2world: np.ndarray,

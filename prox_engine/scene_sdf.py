@@ -115,7 +115,7 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
     bmax = vertices.max(0) + padding
     spacing = (bmax - bmin) / (dim - 1)
     samples, sample_face = surface_samples(vertices, faces, spacing.min() / 2)
-    tree = cKDTree(samples)
+    tree = surface_tree(samples)
     tri = torch.from_numpy(vertices[faces])  # F, 3, 3
     normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
@@ -199,6 +199,14 @@ def exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.nda
         dist, closest = triangle_signed_distance(torch.from_numpy(points), tree, sample_face,
                                                  tri, normals, k)
     return dist.numpy(), closest.numpy()
+
+
+def surface_tree(samples: np.ndarray) -> cKDTree:
+    """A k-d tree of surface samples. Built without shrinking each node's box to its points
+    (``compact_nodes``) and with midpoint splits: on a scan's large flat floors and walls
+    the default's flat boxes made a query 1 m from the floor cost 0.5 ms (a walking body:
+    7 s a frame), this one 4 us, same answers."""
+    return cKDTree(samples, compact_nodes=False, balanced_tree=False)
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray,

@@ -23,16 +23,20 @@ def _flags(vertices, joints, confidence, body, scene) -> list[str]:
                                                    scene)]
 
 
+def _first_truth(data):
+    """The sitting scene, and its first frame's true vertices, joints and detections."""
+    rec = Recording(data, REC)
+    name = rec.frames()[0]
+    truth = np.load(data / "ground_truth" / REC / f"{name}.npz")
+    return (load_scene(rec, 128), torch.as_tensor(truth["vertices"], dtype=torch.float32),
+            torch.as_tensor(truth["joints"], dtype=torch.float32),
+            load_keypoints(rec.keypoint_path(name)).confidence)
+
+
 def test_a_body_pushed_behind_the_chair_back_is_flagged(sitting_data, body):
     """The demo's failure: a sitter fitted 30 cm too deep, through the thin chair back. The
     joints the detector saw are then behind the scan, seen from the camera."""
-    rec = Recording(sitting_data, REC)
-    scene = load_scene(rec, 128)
-    name = rec.frames()[0]
-    truth = np.load(sitting_data / "ground_truth" / REC / f"{name}.npz")
-    vertices = torch.as_tensor(truth["vertices"], dtype=torch.float32)
-    joints = torch.as_tensor(truth["joints"], dtype=torch.float32)
-    confidence = load_keypoints(rec.keypoint_path(name)).confidence
+    scene, vertices, joints, confidence = _first_truth(sitting_data)
     assert _flags(vertices, joints, confidence, body, scene) == []
     scale = 1 + 0.30 / float(joints[8].norm())  # 30 cm farther along the camera rays
     hidden, seen = quality.hidden_joints(joints * scale, confidence, scene)
@@ -41,12 +45,7 @@ def test_a_body_pushed_behind_the_chair_back_is_flagged(sitting_data, body):
 
 
 def test_floating_and_sunk_bodies_are_flagged(sitting_data, body):
-    rec = Recording(sitting_data, REC)
-    scene = load_scene(rec, 128)
-    name = rec.frames()[0]
-    truth = np.load(sitting_data / "ground_truth" / REC / f"{name}.npz")
-    vertices = torch.as_tensor(truth["vertices"], dtype=torch.float32)
-    joints = torch.as_tensor(truth["joints"], dtype=torch.float32)
+    scene, vertices, joints, _ = _first_truth(sitting_data)
     confidence = np.zeros(118)  # nothing seen: only the scene decides
     up = scene.up_in_camera()
     assert _flags(vertices + 0.3 * up, joints + 0.3 * up, confidence, body, scene) == [
