@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 from html import escape
 
-PALETTE = ("#4a4a4a", "#e0a800", "#1f5fd6")
+PALETTE = ("#2e9e6b", "#e0a800", "#1f5fd6")  # the fit's green, the baseline's yellow
 DOTS = 30  # with this many points or fewer, each is marked
 LABELS = 5  # and with this many or fewer, each also carries its value
 
