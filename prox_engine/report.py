@@ -11,17 +11,23 @@ import time
 from urllib.parse import quote
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from . import viewer
+from .camera import Camera
 from .config import load_config
 from .dataset import Recording, frame_rate, load_calibration, load_cam2world
 from .errors import InputError
 from .output import atomic_write_text
 from .plots import line_chart
 from .video import VideoWriter
+
+if TYPE_CHECKING:
+    import trimesh
+
+    from .render import BodyMesh  # imports OpenGL: loaded only when rendering
 
 SIZE = (960, 540)
 THUMB = (320, 180)
@@ -101,9 +107,9 @@ class Setting:
     the fit and optional baseline as ``(prefix, run)``, and the box around every body."""
 
     recording: Recording
-    camera: object
+    camera: Camera
     cam2world: np.ndarray
-    scene: object  # trimesh.Trimesh
+    scene: trimesh.Trimesh
     runs: list[tuple[str, FittedRecording]]
     bounds: np.ndarray  # (2, 3) world-frame corners
 
@@ -132,9 +138,9 @@ class Setting:
             return None
         return np.asarray(self.scene.visual.vertex_colors, dtype=float) / 255
 
-    def body(self, prefix: str, run: FittedRecording, frame: str, flags: bool = True):
-        """A fitted body in the world frame, in its run's colour, flagged vertices marked
-        (a :class:`render.BodyMesh`)."""
+    def body(self, prefix: str, run: FittedRecording, frame: str, flags: bool = True
+             ) -> BodyMesh:
+        """A fitted body in the world frame, in its run's colour, flagged vertices marked."""
         from .render import BASELINE_YELLOW, FIT_COLOUR, BodyMesh
 
         flagged = run.params(frame).get("vertices_flagged", {}) if flags else {}

@@ -11,11 +11,16 @@ import json
 import shutil
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import glb
 from .output import atomic_write_bytes, atomic_write_text
+
+if TYPE_CHECKING:
+    from .camera import Camera
+    from .report import Setting
 
 SCRIPT = "viewer.js"
 
@@ -36,8 +41,9 @@ def write_asset(path: Path, data: bytes) -> None:
     the bytes to the page keyed by its own address."""
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, data)
+    encoded = base64.b64encode(data).decode()
     atomic_write_text(path.with_name(path.name + ".js"),
-                      f'proxGlb(document.currentScript.src, "{base64.b64encode(data).decode()}");\n')
+                      f'proxGlb(document.currentScript.src, "{encoded}");\n')
 
 
 def config_json(config: dict) -> str:
@@ -46,7 +52,8 @@ def config_json(config: dict) -> str:
             .replace("&", "\\u0026"))
 
 
-def write_assets(report: Path, setting, frames: list[str], flags: bool = True) -> None:
+def write_assets(report: Path, setting: Setting, frames: list[str], flags: bool = True
+                 ) -> None:
     """The viewer's script and GLBs under ``report``: ``3d/scene.glb`` (the scan in its
     world frame, simplified), ``3d/<frame>.glb`` per fitted body and
     ``3d/baseline/<frame>.glb`` per baseline body (world frame, flagged vertices in the
@@ -64,7 +71,7 @@ def write_assets(report: Path, setting, frames: list[str], flags: bool = True) -
                         glb.mesh_glb(body.vertices, body.faces, body.colours()))
 
 
-def page_config(frames: list[dict], fps: float, camera, cam2world: np.ndarray,
+def page_config(frames: list[dict], fps: float, camera: Camera, cam2world: np.ndarray,
                 bounds: np.ndarray, baseline: bool) -> dict:
     """What viewer.js reads: the frames (with a line of numbers each), the playback rate,
     the recording camera's pose and field of view to start from, the point to orbit about

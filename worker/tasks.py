@@ -15,6 +15,7 @@ from typing import Callable
 from rq.timeouts import JobTimeoutException
 
 from prox_engine.body.base import BodyModel
+from prox_engine.config import FitConfig
 from prox_engine.errors import InputError
 from service.jobs import JobOptions, JobStore
 from service.settings import Settings
@@ -48,7 +49,7 @@ def clean_scratch(store: JobStore, job_id: str | None = None) -> list[Path]:
 _BODIES: dict[tuple, BodyModel] = {}  # loaded in this process; forked horses inherit them
 
 
-def body_for(config, gender: str) -> BodyModel:
+def body_for(config: FitConfig, gender: str) -> BodyModel:
     """The body model a job's configuration names, loaded once per process: the worker
     loads the default (anny) before it forks its first horse (:func:`preload`), so that no
     job pays for loading it."""
