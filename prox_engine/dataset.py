@@ -76,27 +76,31 @@ class Recording:
         return (depth, mask) if depth.exists() and mask.exists() else None
 
 
+def _stamps(frames: list[str]) -> list[tuple[int, float]] | None:
+    """Frame number and time (s) of each of PROX's frame names
+    (``s001_frame_00001__00.00.00.029``), or None when a name has none."""
+    matches = [_FRAME_TIME.search(name) for name in frames]
+    if not all(matches):
+        return None
+    return [(int(n), int(h) * 3600 + int(m) * 60 + int(sec) + int(ms) / 1000)
+            for n, h, m, sec, ms in (match.groups() for match in matches)]
+
+
 def frame_times(frames: list[str]) -> list[float]:
-    """Each frame's time in the recording (s), from the time stamps in PROX's frame names
-    (``s001_frame_00001__00.00.00.029``), or their order at 30 frames per second (Kinect)
-    when the names have none."""
-    stamps = [_FRAME_TIME.search(name) for name in frames]
-    if not all(stamps):
+    """Each frame's time in the recording (s), from the time stamps in PROX's frame names,
+    or their order at 30 frames per second (Kinect) when the names have none."""
+    stamps = _stamps(frames)
+    if stamps is None:
         return [i / KINECT_FPS for i in range(len(frames))]
-    return [int(h) * 3600 + int(m) * 60 + int(sec) + int(ms) / 1000
-            for h, m, sec, ms in (match.groups()[1:] for match in stamps)]
+    return [time for _, time in stamps]
 
 
 def frame_rate(frames: list[str]) -> float:
     """Frames per second of a recording: the median over consecutive frames of the frame
     numbers in PROX's frame names over their time stamps; 30 (Kinect) without them."""
-    stamps = [_FRAME_TIME.search(name) for name in frames]
-    if not all(stamps):
-        return KINECT_FPS
-    numbers = [int(match[1]) for match in stamps]
-    times = frame_times(frames)
-    rates = [(n1 - n0) / (t1 - t0) for n0, n1, t0, t1 in
-             zip(numbers, numbers[1:], times, times[1:]) if t1 > t0 and n1 > n0]
+    stamps = _stamps(frames) or []
+    rates = [(n1 - n0) / (t1 - t0) for (n0, t0), (n1, t1) in zip(stamps, stamps[1:])
+             if t1 > t0 and n1 > n0]
     return float(np.median(rates)) if rates else KINECT_FPS
 
 

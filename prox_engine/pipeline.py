@@ -126,7 +126,6 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
              "root_m": [round(float(x), 4) for x in joints[BODY_25.index("mid_hip")]],
              "seconds": result.seconds,
-             "body_evaluations": round(sum(result.stage_evaluations.values()), 1),
              "profile": {stage: {"seconds": round(result.stage_seconds.get(stage, 0.0), 4),
                                  "body_evaluations": round(evaluations, 1)}
                          for stage, evaluations in result.stage_evaluations.items()},
@@ -143,8 +142,7 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
         "frame": frame.name, "config": config.name, "sequence": sequence, **params,
         "losses": result.losses, "stats": stats,
         "vertices_flagged": flagged,
-        "timings": {"seconds": result.seconds, "stages": result.stage_seconds,
-                    "body_evaluations": result.stage_evaluations},
+        "timings": {"seconds": result.seconds, "stages": result.stage_seconds},
     })
     atomic_write_bytes(ply_path, ply_bytes(result.vertices.numpy(), body.faces.numpy()))
     prox_result = body.prox_result(result.params, 0)
@@ -157,6 +155,7 @@ def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
                frames: list[dict], failures: list[tuple[str, str]], scene_seconds: float
                ) -> dict:
     n = len(frames)
+    profile = _profile(frames)
     parts = Counter(p for f in frames for p in f["contact_parts"])
     mean = lambda key: sum(f[key] for f in frames) / n if n else None  # noqa: E731
     return {
@@ -178,8 +177,9 @@ def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
                            if f["flags"]],
         "reprojection_error_px": mean("reprojection_error_px"),
         "seconds_per_frame": mean("seconds"),
-        "body_evaluations_per_frame": mean("body_evaluations"),
-        "profile": _profile(frames),
+        "body_evaluations_per_frame": (round(sum(stage["body_evaluations"] for stage in
+                                                 profile.values()), 1) if n else None),
+        "profile": profile,
         "scene_setup_seconds": scene_seconds,
         "threads": torch.get_num_threads(),
         "data": source,

@@ -159,12 +159,10 @@ def render_frames(setting: Setting, frames: list[str], out: Path, flags: bool = 
 
     from .render import VIEWS, SceneRenderer
 
-    scene, cam2world = setting.scene, setting.cam2world
     flip = _mirrored(setting.runs[0][1].summary["config"])
-
     start = time.perf_counter()
-    renderer = SceneRenderer(scene.vertices, scene.faces, setting.scene_colours,
-                             setting.camera, cam2world,
+    renderer = SceneRenderer(setting.scene.vertices, setting.scene.faces,
+                             setting.scene_colours, setting.camera, setting.cam2world,
                              setting.bounds, *size)
     setup = time.perf_counter() - start
     try:

@@ -203,12 +203,12 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
         if baseline is not None and result.summary["frames_fitted"]:
             # the same frames with the baseline configuration: results/<rec>/baseline/
             with contextlib.chdir(data):
-                fit_recording(base, name, scratch / "baseline", baseline, body,
+                fit_recording(base, name, scratch / BASELINE, baseline, body,
                               max_frames=options.frames, sequence=options.sequence,
                               on_stage=lambda stage, rec=name: on_stage(stage, rec,
                                                                         "baseline "),
                               source=f"the upload of job {job_id}")
-            (scratch / "baseline" / name).rename(out / name / BASELINE)
+            (scratch / BASELINE / name).rename(out / name / BASELINE)
         summary = result.summary
         done += summary["frames_fitted"] + summary["frames_failed"]
         failed += summary["frames_failed"]
