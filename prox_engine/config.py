@@ -44,6 +44,9 @@ class FitConfig:
     # a posture or orientation the rigid start search ranks second often fits better.
     start_candidates: int = 2
     start_stages: int = 2
+    # With a scale search, the starts are compared by objective + this weight times the
+    # search's cost (how badly the body meets the scene at its best scale, 0-2).
+    start_scene_weight: float = 0.0
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

@@ -127,7 +127,7 @@ class Fitter:
             final = self._run_stage(stage, params, free, target, conf, depth,
                                     previous_keypoints)
             if keep > 1 and index + 1 == self.config.start_stages:
-                rows = self._best_starts(final, keep)
+                rows = self._best_starts(params, final, keep)
                 params = {k: v[rows].contiguous() for k, v in params.items()}
                 target, conf = target[rows], conf[rows]
                 final = {k: v[rows] for k, v in final.items()}
@@ -151,12 +151,16 @@ class Fitter:
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
 
-    @staticmethod
-    def _best_starts(terms: dict[str, torch.Tensor], keep: int) -> list[int]:
-        """Rows (one per frame) of the starts, ``keep`` per frame, whose objective is
-        lowest after the stages they were fitted through."""
-        total = sum(terms.values()).view(-1, keep)
-        return (torch.arange(len(total)) * keep + total.argmin(1)).tolist()
+    def _best_starts(self, params: Params, terms: dict[str, torch.Tensor], keep: int
+                     ) -> list[int]:
+        """Rows (one per frame) of the starts, ``keep`` per frame, with the lowest objective
+        (``terms``) plus, with a scale search, ``start_scene_weight`` times how badly each
+        can meet the scene at its best scale."""
+        score = sum(terms.values())
+        if self.config.start_scene_weight > 0 and self._scales_searched():
+            score = score + self.config.start_scene_weight * self._scale_search(params)[1]
+        score = score.view(-1, keep)
+        return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
 
     def _announce(self, stage: str) -> None:
         if self.on_stage is not None:
@@ -233,20 +237,30 @@ class Fitter:
     def _scene_stage(stage: Stage) -> bool:
         return stage.weights.get("penetration", 0) > 0 or stage.weights.get("contact", 0) > 0
 
-    def _rescale(self, params: Params) -> None:
-        """Scale each body about the camera centre to where it best meets the scene (see
-        :mod:`scale_search`), then refit shape and root to the scaled vertices, in place."""
+    def _scales_searched(self) -> bool:
+        return self.config.scale_search and any(self._scene_stage(s) for s in self.config.stages)
+
+    def _scale_search(self, params: Params) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Per body, the scale about the camera centre at which it best meets the scene,
+        that scale's cost (see :mod:`scale_search`), and the unscaled vertices."""
         cfg, body = self.config, self.body
         with torch.no_grad():
-            out = body(params)
-            normals = vertex_normals(out.vertices, body.faces)
-        scale = best_scale(out.vertices, normals, body.scene_vertices, self.contact_part_ids,
-                           self.scene, cfg.uses("contact"), cfg.uses("penetration"),
-                           cfg.contact_rho, cfg.contact_max_angle, cfg.contact_max_distance,
-                           cfg.scale_support)
+            vertices = body(params).vertices
+            normals = vertex_normals(vertices, body.faces)
+        scale, cost = best_scale(vertices, normals, body.scene_vertices, self.contact_part_ids,
+                                 self.scene, cfg.uses("contact"), cfg.uses("penetration"),
+                                 cfg.contact_rho, cfg.contact_max_angle,
+                                 cfg.contact_max_distance, cfg.scale_support)
+        return scale, cost, vertices
+
+    def _rescale(self, params: Params) -> None:
+        """Scale each body about the camera centre to where it best meets the scene, then
+        refit shape and root to the scaled vertices, in place."""
+        body = self.body
+        scale, _, vertices = self._scale_search(params)
         if bool(((scale - 1).abs() < 0.01).all()):
             return
-        goal = out.vertices * scale[:, None, None]
+        goal = vertices * scale[:, None, None]
         with torch.no_grad():
             params["transl"] *= scale[:, None]
         self._minimise([params[n] for n in ["transl", "global_orient", *body.shape_group()]],

@@ -37,17 +37,21 @@ UPWARD = 0.7  # scene surfaces whose normal points this far up can carry a body
 def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
                contact_parts: list[torch.Tensor], scene: Scene, use_contact: bool,
                use_penetration: bool, rho: float, max_angle_deg: float,
-               max_distance: float, use_support: bool = True) -> torch.Tensor:
+               max_distance: float, use_support: bool = True
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices inside it plus, with ``use_support``, how far the body's underside is from
     resting on an upward-facing surface, plus a weak prior on body size. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
-    ``contact_parts`` vertex indices per part. Returns (B,) scales."""
+    ``contact_parts`` vertex indices per part. Returns (B,) scales and (B,) their costs but the size prior's (0:
+    every part touches, nothing enters, the body rests on a surface): how well the body can
+    meet the scene at all, comparable between bodies fitted at different sizes."""
     scales = SCALES[:, None, None]
-    best = []
+    best, lowest = [], []
     for b in range(vertices.shape[0]):
-        cost = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
+        prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
+        cost = torch.zeros_like(prior)
         scaled = scales * vertices[b, scene_vertices]  # (S, N, 3)
         signed = scene.signed_distance(scaled) if use_penetration or use_support else None
         if use_penetration:
@@ -64,8 +68,10 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         if use_support:
             cost = cost + SUPPORT_WEIGHT * _unsupported(scaled, signed,
                                                         normals[b, scene_vertices], scene, rho)
-        best.append(SCALES[int(cost.argmin())])
-    return torch.stack(best)
+        pick = int((cost + prior).argmin())
+        best.append(SCALES[pick])
+        lowest.append(cost[pick])
+    return torch.stack(best), torch.stack(lowest)
 
 
 def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tensor,

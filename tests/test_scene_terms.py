@@ -202,9 +202,16 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
     camera = (world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation
     far = 1.2 * camera[None]
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand")]
-    scale = best_scale(far, vertex_normals(far, body.faces), body.scene_vertices, parts, scene,
-                       True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
+    scale, cost_far = best_scale(far, vertex_normals(far, body.faces), body.scene_vertices,
+                                 parts, scene, True, True, rho=0.05, max_angle_deg=45,
+                                 max_distance=0.15)
     assert abs(float(scale) * 1.2 - 1.0) < 0.03
+    # Its cost is that of the body fitted at the right size: the size prior (0.46 at
+    # 1 / 1.2) only picks a scale, it does not make one start worse than another.
+    _, cost = best_scale(camera[None], vertex_normals(camera[None], body.faces),
+                         body.scene_vertices, parts, scene, True, True, rho=0.05,
+                         max_angle_deg=45, max_distance=0.15)
+    assert abs(float(cost_far) - float(cost)) < 0.1
 
 
 def test_scale_search_keeps_a_body_standing_before_a_wall(body):
@@ -231,8 +238,9 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
     camera = ((world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation)[None]
     parts = [body.contact_parts[p] for p in body.contact_parts]
-    scale = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices, parts,
-                       scene, True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
+    scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
+                          parts, scene, True, True, rho=0.05, max_angle_deg=45,
+                          max_distance=0.15)
     assert abs(float(scale) - 1.0) < 0.02
 
 
@@ -257,7 +265,51 @@ def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
     meta = json.loads((tmp_path / "ground_truth" / rec / "meta.json").read_text())
     truth = np.load(tmp_path / "ground_truth" / rec / f"{meta['frames'][0]}.npz")["vertices"]
     too_close = torch.tensor(truth, dtype=torch.float32)[None] / 1.17
-    scale = best_scale(too_close, vertex_normals(too_close, body.faces), body.scene_vertices,
-                       list(body.contact_parts.values()), scene, True, True, rho=0.05,
-                       max_angle_deg=45, max_distance=0.15)
+    scale, _ = best_scale(too_close, vertex_normals(too_close, body.faces),
+                          body.scene_vertices, list(body.contact_parts.values()), scene, True,
+                          True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) / 1.17 - 1.0) < 0.03
+
+
+def test_start_choice_asks_which_start_can_sit_on_the_chair(tmp_path, body):
+    """Two starts of one frame in front of a chair: the person sitting on it, and the same
+    trunk with its legs hanging straight (through the seat and the floor at the fitted size,
+    floating above the seat when shrunk onto the floor). The hanging start explains the
+    keypoints a little better (its objective is lower); the scene decides for the sitting
+    one, unless ``start_scene_weight`` is 0. The camera is tilted, turned and off-centre."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.config import load_config
+    from prox_engine.fitting import Fitter
+    from prox_engine.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+    from prox_engine.synthetic import body_params, chair, look_at, sitting_pose
+
+    sitting = body_params(body, sitting_pose(), 0.0, {})
+    with torch.no_grad():
+        world = body(sitting).vertices[0].numpy()
+    main = body.scene_vertices.numpy()
+    seat = chair(world[main], np.asarray(body.vertex_parts)[main])
+    floor = plane_mesh(size=3.0, z=float(world[:, 2].min()))
+    room = trimesh.util.concatenate([floor, seat])
+    centre = world[main].mean(0)
+    cam2world = look_at(centre + np.array([0.9, -2.6, 0.8]), centre)
+    scene = Scene(room.vertices, room.faces, cam2world,
+                  compute_sdf(room.vertices, room.faces, dim=128, padding=0.5))
+    hanging = {k: v.clone() for k, v in sitting.items()}
+    for bone in ("upperleg01.L", "upperleg01.R", "lowerleg01.L", "lowerleg01.R"):
+        hanging["body_pose"][0, BODY_BONES.index(bone)] = 0.0
+    # Into the camera frame (the root pivot is anny's origin).
+    rotation = torch.tensor(np.linalg.inv(cam2world)[:3, :3], dtype=torch.float32)
+    offset = torch.tensor(np.linalg.inv(cam2world)[:3, 3], dtype=torch.float32)
+    starts = {}
+    for key in sitting:
+        starts[key] = torch.cat([hanging[key], sitting[key]])
+    starts["global_orient"] = matrix_to_axis_angle(
+        rotation @ axis_angle_to_matrix(starts["global_orient"]))
+    starts["transl"] = starts["transl"] @ rotation.T + offset
+    terms = {"data": torch.tensor([100.0, 200.0])}  # the hanging legs fit the pixels better
+
+    camera = Camera(fx=1000.0, fy=1000.0, cx=960.0, cy=540.0)
+    config = load_config("prox")
+    assert Fitter(body, camera, config, scene)._best_starts(starts, terms, 2) == [1]
+    config.start_scene_weight = 0.0
+    assert Fitter(body, camera, config, scene)._best_starts(starts, terms, 2) == [0]
