@@ -124,9 +124,11 @@ def test_start_search_places_smplx_on_its_keypoints(smplx):
 
 def test_rest_pose_and_keypoint_mapping(model_dir):
     data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
-    smplx = SMPLXBody.load(model_dir, "neutral", hand_pca=0)  # PCA hands rest at their mean
+    smplx = SMPLXBody.load(model_dir, "neutral", hand_pca=0)
+    params = smplx.init_params(1)
+    params["hand_pose"] = -smplx.hand_mean.view(1, 30, 3)  # flat hands: the template's
     with torch.no_grad():
-        out = smplx(smplx.init_params(1))
+        out = smplx(params)
     vertices, keypoints = out.vertices[0].numpy(), out.keypoints[0].numpy()
     assert np.allclose(vertices, data["v_template"], atol=1e-5)
     joints = data["J_regressor"] @ data["v_template"]
@@ -161,7 +163,43 @@ def test_hands_from_pca_or_every_joint(model_dir, smplx):
     moved = smplx.finger_pose(params)[0].reshape(2, 45).numpy()
     assert np.allclose(moved[0] - rest[0], data["hands_componentsl"][0], atol=1e-6)
     full = SMPLXBody.load(model_dir, "neutral", hand_pca=0)
-    assert full.init_params(1)["hand_pose"].shape == (1, 30, 3)
+    params = full.init_params(1)
+    assert params["hand_pose"].shape == (1, 30, 3)
+    assert np.allclose(full.finger_pose(params)[0].reshape(2, 45).numpy(), rest)  # the mean
+
+
+@pytest.mark.parametrize("hand_pca", [12, 0])
+def test_pkl_read_as_smplifyx_reads_it_gives_our_vertices(model_dir, hand_pca):
+    """000.pkl's hands, read as SMPLify-X and PROX read them (``flat_hand_mean=False``: the
+    mean hand added to the PCA decoding, or to the 45 rotations without PCA), and its other
+    arrays, skinned by a plain reference, give back our vertices; the JSON's hand poses and
+    convention say the same."""
+    data = dict(np.load(model_dir / "SMPLX_NEUTRAL.npz"))
+    smplx = SMPLXBody.load(model_dir, "neutral", hand_pca=hand_pca)
+    params = _random_params(smplx, seed=3)
+    with torch.no_grad():
+        ours = smplx(params).vertices[1].numpy()
+    pkl = smplx.prox_result(params, 1)
+    hands = []
+    for side in "lr":
+        values = pkl[f"{'left' if side == 'l' else 'right'}_hand_pose"][0]
+        assert len(values) == (hand_pca or 45)
+        if hand_pca:
+            values = values @ data[f"hands_components{side}"][:hand_pca]
+        hands.append(values + data[f"hands_mean{side}"])
+    read = {"betas": torch.tensor(pkl["betas"]), "expression": torch.tensor(pkl["expression"]),
+            "global_orient": torch.tensor(pkl["global_orient"]),
+            "body_pose": torch.tensor(pkl["body_pose"]).view(1, 21, 3),
+            "jaw_pose": torch.tensor(pkl["jaw_pose"]), "transl": torch.tensor(pkl["transl"])}
+    fingers = np.concatenate(hands).reshape(30, 3)
+    assert np.abs(_reference_lbs(data, read, 0, fingers) - ours).max() < 1e-4
+    exported = smplx.export(params, 1)
+    convention = exported["hand_convention"]
+    assert not convention["flat_hand_mean"] and convention["pkl_hand_values"] == (hand_pca or 45)
+    relative = np.array(exported["left_hand_pose"] + exported["right_hand_pose"])
+    assert np.allclose(relative.reshape(2, 45) + np.stack([data["hands_meanl"],
+                                                          data["hands_meanr"]]),
+                       fingers.reshape(2, 45), atol=1e-5)
 
 
 def test_genders_load_their_own_file(model_dir, smplx):

@@ -9,7 +9,8 @@ as in SMPL-X: x to the body's left, y up, z forward):
 - ``global_orient`` (B, 3), ``transl`` (B, 3): the root (pelvis) in the fitting frame;
 - ``body_pose`` (B, 21, 3): joints 1-21 (hips to wrists);
 - ``hand_pose``: (B, 2 * P) PCA coefficients of the left then the right hand (P = 12 as in
-  the paper), or (B, 30, 3) finger rotations when ``hand_pca`` is 0;
+  the paper), or (B, 30, 3) finger rotations when ``hand_pca`` is 0; in both cases relative
+  to the model's mean hand, as SMPLify-X's ``flat_hand_mean: False`` (zero: the mean hand);
 - ``betas`` (B, 10), ``expression`` (B, 10), ``jaw_pose`` (B, 3); the eyes stay at rest.
 With VPoser (the user's snapshot), ``pose_embedding`` (B, 32) replaces ``body_pose``.
 """
@@ -368,13 +369,13 @@ class SMPLXBody(BodyModel):
         return torch.tensor([0.0, 0.0, 1.0])
 
     def finger_pose(self, params: Params) -> torch.Tensor:
-        """(B, 30, 3) axis-angle of the left then the right fingers."""
+        """(B, 30, 3) axis-angle of the left then the right fingers: the mean hand plus
+        ``hand_pose`` (decoded from its PCA coefficients when fitted with PCA)."""
         hand = params["hand_pose"]
-        if not self.hand_pca:
-            return hand
-        coeffs = hand.view(-1, 2, self.hand_pca)
-        full = torch.einsum("bsp,spk->bsk", coeffs, self.hand_basis) + self.hand_mean
-        return full.reshape(-1, 30, 3)
+        if self.hand_pca:
+            coeffs = hand.view(-1, 2, self.hand_pca)
+            hand = torch.einsum("bsp,spk->bsk", coeffs, self.hand_basis)
+        return (hand.reshape(-1, 2, 45) + self.hand_mean).reshape(-1, 30, 3)
 
     # ----------------------------------------------------------------- forward
     def forward(self, params: Params) -> BodyOutput:
@@ -452,7 +453,8 @@ class SMPLXBody(BodyModel):
     # ----------------------------------------------------------------- export
     def export(self, params: Params, index: int) -> dict:
         value = lambda name: params[name][index].detach().tolist()  # noqa: E731
-        fingers = self.finger_pose({"hand_pose": params["hand_pose"][index:index + 1]})[0]
+        fingers = (self.finger_pose({"hand_pose": params["hand_pose"][index:index + 1]})[0]
+                   - self.hand_mean.view(30, 3))
         body_pose = self.body_pose(params)[index].detach().tolist()
         return {
             "model": "smplx", "gender": self.gender, "model_file": self.source,
@@ -461,6 +463,11 @@ class SMPLXBody(BodyModel):
             "pose_embedding": value("pose_embedding") if self.vposer is not None else None,
             "left_hand_pose": fingers[:15].tolist(), "right_hand_pose": fingers[15:].tolist(),
             "hand_pca": value("hand_pose") if self.hand_pca else None,
+            "hand_convention": {  # SMPLify-X's: smplx.create(..., flat_hand_mean=False)
+                "poses": "left/right_hand_pose here and in 000.pkl are relative to the mean hand",
+                "flat_hand_mean": False, "use_pca": bool(self.hand_pca),
+                "num_pca_comps": self.hand_pca or None,
+                "pkl_hand_values": self.hand_pca or 45},
             "betas": value("betas"), "expression": value("expression"),
             "jaw_pose": value("jaw_pose"), "pose_parameterization": "SMPL-X axis-angle",
         }
@@ -468,7 +475,8 @@ class SMPLXBody(BodyModel):
     def prox_result(self, params: Params, index: int) -> dict[str, np.ndarray]:
         """The arrays PROX and SMPLify-X write to ``results/<frame>/000.pkl`` (camera at
         the origin, decoded axis-angle ``body_pose``; hands as PCA coefficients when fitted
-        with PCA, like theirs)."""
+        with PCA, like theirs, else the 45 finger rotations per hand; both relative to the
+        mean hand, to be read with ``flat_hand_mean=False``)."""
         def row(name: str) -> np.ndarray:
             return params[name][index:index + 1].detach().numpy().reshape(1, -1)
 
