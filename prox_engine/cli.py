@@ -101,7 +101,7 @@ def _config_with_body(args: argparse.Namespace) -> FitConfig:
     options = {"model": args.model, "model_path": args.model_path, "gender": args.gender,
                "hand_pca": args.hand_pca, "body_segments": args.body_segments,
                "vposer_path": args.vposer_path}
-    return dataclasses.replace(load_config(args.config),
+    return dataclasses.replace(load_config(args.config, args.model or "anny"),
                                **{k: v for k, v in options.items() if v is not None})
 
 

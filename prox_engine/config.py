@@ -50,6 +50,9 @@ class FitConfig:
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5
+    # Prior weights (pose, shape, bending, hands) enter the loss squared, as SMPLify-X and
+    # PROX write theirs (so their stage values can be copied as they are).
+    squared_priors: bool = False
     contact_rho: float = 0.05
     contact_max_angle: float = 45.0
     contact_max_distance: float = 0.15  # vertices farther than this are not attracted
@@ -95,12 +98,15 @@ def _read(path: Path, seen: set[Path]) -> dict:
     return {**_read(parent, seen | {path.resolve()}), **raw}
 
 
-def load_config(name_or_path: str | Path) -> FitConfig:
+def load_config(name_or_path: str | Path, model: str = "anny") -> FitConfig:
     """Load ``rgb``, ``prox``, ``smplifyd``, ``proxd`` or a YAML file path; a file may
-    name a ``base`` configuration whose settings it overrides."""
+    name a ``base`` configuration whose settings it overrides. A built-in name resolves to
+    the ``model``'s own version when there is one (``smplx-prox`` for SMPL-X: PROX's
+    weights)."""
     path = Path(name_or_path)
     if not path.suffix:
-        path = CONFIG_DIR / f"{name_or_path}.yaml"
+        own = CONFIG_DIR / f"{model}-{name_or_path}.yaml"
+        path = own if own.exists() else CONFIG_DIR / f"{name_or_path}.yaml"
         if not path.exists():
             known = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")))
             raise InputError(name_or_path, f"unknown configuration (known: {known})")

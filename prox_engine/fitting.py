@@ -191,7 +191,7 @@ class Fitter:
                   "bending": body.bending_prior, "hand_prior": body.hand_prior}
         for name, prior in priors.items():
             if w.get(name, 0) > 0:
-                terms[name] = w[name] * prior(params)
+                terms[name] = w[name] ** (2 if cfg.squared_priors else 1) * prior(params)
         if w.get("self_penetration", 0) > 0:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:

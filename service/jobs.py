@@ -59,7 +59,8 @@ class JobOptions:
         extras = {name: model_dir / name if model_dir and (model_dir / name).is_dir() else None
                   for name in ("body_segments", "vposer_v1_0")}
         return dataclasses.replace(
-            load_config(name or self.config), batch_size=self.batch, model=self.model,
+            load_config(name or self.config, self.model), batch_size=self.batch,
+            model=self.model,
             gender=self.gender,
             hand_pca=self.hand_pca, model_path=str(model_dir) if model_dir else None,
             body_segments=str(extras["body_segments"]) if extras["body_segments"] else None,

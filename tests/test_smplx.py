@@ -14,7 +14,8 @@ import torch
 
 from prox_engine.errors import InputError
 from prox_engine.geometry import axis_angle_to_matrix
-from prox_engine.keypoints import BODY, FACE, LEFT_HAND, RIGHT_HAND
+from prox_engine.camera import Camera
+from prox_engine.keypoints import BODY, FACE, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 
 from prox_engine.body import smplx_body
 from prox_engine.body.smplx_body import SMPLXBody
@@ -295,8 +296,9 @@ def test_prox_fit_with_smplx_writes_prox_pickles(model_dir, smplx, vposer_dir, t
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     summary = json.loads((tmp_path / "out" / rec / "summary.json").read_text())
-    # A random VPoser reaches fewer poses than free joint rotations.
-    limit = 25 if prior == "free" else 80
+    # A random VPoser reaches fewer poses than free joint rotations, and PROX's prior
+    # weights (404^2 on |z|^2 in the first stages) hold its code near the mean: 83 px.
+    limit = 25 if prior == "free" else 100
     assert summary["frames_fitted"] == 1 and summary["reprojection_error_px"] < limit, summary
     assert (tmp_path / "out" / rec / "report" / "images" / f"{frame}_side.jpg").exists()
     with (tmp_path / "out" / rec / "results" / frame / "000.pkl").open("rb") as handle:
@@ -372,3 +374,54 @@ def test_bad_vposer_snapshots_are_clear_errors(vposer_dir, tmp_path, problem):
                 "no snapshot": "no VPoser snapshot"}[problem]
     with pytest.raises(InputError, match=expected):
         VPoser.load(folder)
+
+
+def test_smplx_resolves_its_own_configurations_with_prox_weights(smplx):
+    """`rgb`, `prox`, `smplifyd` and `proxd` resolve to SMPL-X's own files for SMPL-X (and
+    stay ours for anny), and their prior weights enter the loss squared, as PROX's: the
+    first stage's pose prior weighs 404^2 = 163216 times the prior."""
+    from prox_engine.config import load_config
+    from prox_engine.fitting import Fitter
+
+    for name in ("rgb", "prox", "smplifyd", "proxd"):
+        assert load_config(name, "smplx").name == f"smplx-{name}"
+        assert load_config(name).name == name
+    config = load_config("prox", "smplx")
+    assert len(config.stages) == 7 and config.stages[4].weights["face"] == 2
+    params = _random_params(smplx)
+    camera = Camera(1000.0, 1000.0, 960.0, 540.0)
+    fitter = Fitter(smplx, camera, load_config("rgb", "smplx"))
+    with torch.no_grad():
+        out = smplx(params)
+        target, conf = torch.zeros(2, N_KEYPOINTS, 2), torch.ones(2, N_KEYPOINTS)
+        terms = fitter._terms(fitter.config.stages[0], out, params, target, conf, [None], None)
+    assert torch.allclose(terms["pose_prior"], 404.0 ** 2 * smplx.pose_prior(params))
+    assert torch.allclose(terms["shape"], 100.0 ** 2 * smplx.shape_prior(params))
+
+
+def test_smplx_fit_with_prox_weights_converges(smplx):
+    """A posed synthetic SMPL-X body (face and hands seen) fitted with PROX's weights: no
+    stage meets non-finite values and the keypoints are reached within a few pixels
+    (a prior this strong keeps a clean synthetic fit 1-2 px above the weaker anny weights:
+    measured 4.9 against 3.7 px)."""
+    from prox_engine import metrics
+    from prox_engine.config import load_config
+    from prox_engine.fitting import Fitter, Frame
+    from prox_engine.keypoints import Keypoints
+
+    g = torch.Generator().manual_seed(1)
+    params = smplx.init_params(1)
+    params["body_pose"] = torch.randn(1, 21, 3, generator=g) * 0.25
+    params["body_pose"][0, 15, 2], params["body_pose"][0, 16, 2] = -0.8, 0.8  # arms down
+    params["global_orient"][0] = torch.tensor([np.pi, 0.3, 0.0])  # upright, turned
+    params["transl"][0] = torch.tensor([0.1, 0.2, 3.0])
+    camera = Camera(1000.0, 1000.0, 960.0, 540.0)
+    with torch.no_grad():
+        truth = smplx(params).keypoints[0]
+    data = np.concatenate([camera.project(truth[None])[0].numpy(),
+                           np.full((N_KEYPOINTS, 1), 0.9)], 1)
+    keypoints = Keypoints(data, True, True)
+    result = Fitter(smplx, camera, load_config("rgb", "smplx")).fit([Frame("f", keypoints)])[0]
+    assert result.events == []
+    error = metrics.reprojection_error(result.keypoints, keypoints, camera, smplx.keypoint_mask)
+    assert error < 8.0
