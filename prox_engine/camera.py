@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 
@@ -40,3 +41,13 @@ class Camera:
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         return torch.stack([xd, yd], -1)
+
+
+@dataclass
+class DepthCamera:
+    """A depth (IR) camera beside the colour one: intrinsics (3, 3), OpenCV distortion, and
+    the rigid transform (4, 4) from its frame to the colour camera's."""
+
+    matrix: np.ndarray
+    distortion: np.ndarray
+    to_colour: np.ndarray

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, DepthCamera
 from .errors import InputError
 
 KEYPOINT_SUFFIX = "_keypoints.json"
@@ -69,6 +69,14 @@ class Recording:
 
     def keypoint_path(self, frame: str) -> Path:
         return self.keypoint_dir / f"{frame}{KEYPOINT_SUFFIX}"
+
+    @property
+    def depth_calibration_path(self) -> Path | None:
+        """The depth (IR) camera's calibration, ``IR.json`` or ``depth.json``, if any."""
+        for name in ("IR.json", "depth.json"):
+            if (self.base / "calibration" / name).exists():
+                return self.base / "calibration" / name
+        return None
 
     def depth_paths(self, frame: str) -> tuple[Path, Path] | None:
         depth = self.recording_dir / "Depth" / f"{frame}.png"
@@ -160,6 +168,31 @@ def load_calibration(path: Path, content: bytes | None = None) -> Camera:
         wh = _numbers(path, size, "size", 2)
         width, height = int(wh[0]), int(wh[1])
     return Camera(float(f[0]), float(f[1]), float(c[0]), float(c[1]), k.tolist(), width, height)
+
+
+def _view(path: Path, data: dict) -> np.ndarray:
+    """A calibration's ``view_mtx`` (3x4: a common frame to the camera's) as 4x4; identity
+    when the file has none."""
+    view = np.eye(4)
+    if data.get("view_mtx") is not None:
+        view[:3] = _numbers(path, data["view_mtx"], "view_mtx", 12).reshape(3, 4)
+    return view
+
+
+def load_depth_camera(ir_path: Path, colour_path: Path) -> DepthCamera:
+    """PROX's ``IR.json`` (``camera_mtx`` 3x3, ``k``, ``view_mtx`` 3x4) with ``Color.json``'s
+    ``view_mtx``: a depth-camera point p goes to the common frame as (p - t) R, then into
+    the colour camera's frame by the colour view."""
+    data, colour = _read_json(ir_path), _read_json(colour_path)
+    if not isinstance(data, dict) or "camera_mtx" not in data:
+        raise InputError(ir_path, "depth calibration needs 'camera_mtx' (3x3)")
+    if not isinstance(colour, dict):
+        raise InputError(colour_path, "calibration must be a JSON object")
+    matrix = _numbers(ir_path, data["camera_mtx"], "camera_mtx", 9).reshape(3, 3)
+    distortion = (_numbers(ir_path, data["k"], "k") if data.get("k") is not None
+                  else np.zeros(0))
+    return DepthCamera(matrix, distortion,
+                       _view(colour_path, colour) @ np.linalg.inv(_view(ir_path, data)))
 
 
 def load_cam2world(path: Path, content: bytes | None = None) -> np.ndarray:

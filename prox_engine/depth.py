@@ -1,18 +1,23 @@
 """Depth input for SMPLify-D / PROX-D: body-mask points from a depth frame.
 
-``recordings/<rec>/Depth/<frame>.png``: 16-bit depth in millimetres x 8 (PROX), registered to
-the colour camera; ``BodyIndex/<frame>.png``: Kinect body index, 255 = background. When the
-depth resolution differs from the colour one the colour intrinsics are scaled to it.
+``recordings/<rec>/Depth/<frame>.png``: 16-bit depth in millimetres x 8 (PROX);
+``BodyIndex/<frame>.png``: Kinect body index, 255 = background. Real PROX depth comes from
+the Kinect's 512x424 depth (IR) camera, calibrated in ``calibration/IR.json`` (or
+``depth.json``): its pixels are undistorted with that camera's intrinsics and distortion,
+scaled by their depth and moved into the colour camera's frame through both cameras'
+``view_mtx``, as PROX does. Without an IR calibration the depth is taken as registered to
+the colour camera, whose intrinsics are scaled to the depth resolution.
 """
 from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from PIL import Image
 
-from .camera import Camera
+from .camera import Camera, DepthCamera
 from .errors import InputError
 
 DEPTH_SCALE = 1.0 / 8000.0  # PNG value -> metres
@@ -28,8 +33,10 @@ def _read(path: Path) -> np.ndarray:
 
 
 def load_depth_points(depth_path: Path, mask_path: Path, camera: Camera, flip: bool,
-                      max_points: int, seed: int = 0) -> torch.Tensor:
-    """Camera-frame points (N, 3) of the depth pixels inside the body mask."""
+                      max_points: int, seed: int = 0,
+                      depth_camera: DepthCamera | None = None) -> torch.Tensor:
+    """Colour-camera-frame points (N, 3) of the depth pixels inside the body mask, through
+    ``depth_camera`` when given, else with the depth registered to ``camera``."""
     depth = _read(depth_path).astype(np.float64) * DEPTH_SCALE
     mask = _read(mask_path)
     if mask.ndim == 3:
@@ -38,14 +45,22 @@ def load_depth_points(depth_path: Path, mask_path: Path, camera: Camera, flip: b
         raise InputError(mask_path, f"body mask {mask.shape} does not match depth {depth.shape}")
     if flip:
         depth, mask = depth[:, ::-1], mask[:, ::-1]
-    height, width = depth.shape
-    sx = width / (camera.width or COLOR_SIZE[0])
-    sy = height / (camera.height or COLOR_SIZE[1])
     v, u = np.nonzero((mask != 255) & (depth > 0.1))
     if len(u) > max_points:
         keep = np.random.default_rng(seed).choice(len(u), max_points, replace=False)
         u, v = u[keep], v[keep]
+    z = depth[v, u]
+    if depth_camera is not None:
+        pixels = np.stack([u, v], 1).astype(np.float64)[:, None]
+        normalised = cv2.undistortPoints(pixels, depth_camera.matrix,
+                                         depth_camera.distortion)[:, 0]
+        points = np.concatenate([normalised * z[:, None], z[:, None]], 1)
+        rigid = depth_camera.to_colour
+        return torch.tensor(points @ rigid[:3, :3].T + rigid[:3, 3], dtype=torch.float32)
+    height, width = depth.shape
+    sx = width / (camera.width or COLOR_SIZE[0])
+    sy = height / (camera.height or COLOR_SIZE[1])
     scaled = Camera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy)
-    z = torch.tensor(depth[v, u], dtype=torch.float32)
     return scaled.backproject(torch.tensor(u, dtype=torch.float32),
-                              torch.tensor(v, dtype=torch.float32), z)
+                              torch.tensor(v, dtype=torch.float32),
+                              torch.tensor(z, dtype=torch.float32))

@@ -12,9 +12,10 @@ import torch
 
 from . import metrics, quality
 from .body.base import BodyModel
+from .camera import Camera, DepthCamera
 from .config import FitConfig
 from .dataset import (Recording, frame_times, load_calibration, load_cam2world,
-                      load_scene_mesh)
+                      load_depth_camera, load_scene_mesh)
 from .depth import load_depth_points
 from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
@@ -54,6 +55,8 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     if not names:
         raise InputError(rec.keypoint_dir, "no *_keypoints.json files")
     camera = load_calibration(rec.calibration_path)
+    depth_camera = (load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
+                    if config.uses("depth") and rec.depth_calibration_path else None)
     if on_stage:
         on_stage("scene")
     t0 = time.perf_counter()
@@ -70,7 +73,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
         frames = []
         for name in names[start:start + batch]:
             try:
-                frames.append(_load_frame(rec, name, camera, config))
+                frames.append(_load_frame(rec, name, camera, config, depth_camera))
             except InputError as exc:
                 failures.append((name, str(exc)))
                 previous = None  # do not warm-start across a gap
@@ -103,7 +106,8 @@ def load_scene(rec: Recording, sdf_dim: int) -> Scene:
                       rec.sdf_paths, dim=sdf_dim)
 
 
-def _load_frame(rec: Recording, name: str, camera, config: FitConfig) -> Frame:
+def _load_frame(rec: Recording, name: str, camera: Camera, config: FitConfig,
+                depth_camera: DepthCamera | None = None) -> Frame:
     keypoints = load_keypoints(rec.keypoint_path(name))
     depth = None
     if config.uses("depth"):
@@ -112,7 +116,8 @@ def _load_frame(rec: Recording, name: str, camera, config: FitConfig) -> Frame:
             raise InputError(rec.recording_dir / "Depth" / f"{name}.png",
                              f"configuration '{config.name}' needs Depth/ and BodyIndex/ "
                              "frames")
-        depth = load_depth_points(*paths, camera, config.flip, config.depth_max_points)
+        depth = load_depth_points(*paths, camera, config.flip, config.depth_max_points,
+                                  depth_camera=depth_camera)
     return Frame(name, keypoints, depth)
 
 

@@ -51,3 +51,69 @@ def test_depth_term_is_zero_on_the_surface_and_grows_off_it(body):
     on = depth_data(out, body, [cloud], rho=0.05)
     off = depth_data(out, body, [cloud + torch.tensor([0.0, 0.0, 0.05])], rho=0.05)
     assert on.item() < 1e-6 and off.item() > 100 * on.item()
+
+
+def _view(angles: tuple[float, float, float], offset: list[float]) -> np.ndarray:
+    from prox_engine.geometry import axis_angle_to_matrix
+
+    view = np.eye(4)
+    view[:3, :3] = axis_angle_to_matrix(torch.tensor(angles)).numpy()
+    view[:3, 3] = offset
+    return view
+
+
+def test_kinect_depth_through_its_ir_calibration_lands_on_the_body(tmp_path, body):
+    """A body seen by a Kinect-like depth camera (512x424, distorted, turned and offset
+    from the colour camera, whose own view_mtx is not the identity either) is written as
+    PROX writes depth (mm x 8) with a body-index mask; read back through IR.json, every
+    point lies on the body in the colour camera's frame within 1 cm. Taking the same
+    frame as registered to the colour camera misses the body by far more."""
+    import json
+
+    import cv2
+
+    from prox_engine.dataset import Recording, load_depth_camera
+
+    params = body.init_params(1)
+    params["global_orient"][0] = torch.tensor([-np.pi / 2, 0.0, 0.0])  # upright, facing us
+    params["transl"][0] = torch.tensor([0.1, 0.2, 2.5])
+    with torch.no_grad():
+        colour_points = body(params).vertices[0].numpy().astype(np.float64)
+    colour_view = _view((0.02, -0.03, 0.01), [0.03, -0.01, 0.02])
+    ir_view = _view((0.03, 0.06, -0.02), [-0.052, 0.004, 0.011])
+    matrix = np.array([[365.6, 0.0, 257.2], [0.0, 365.6, 206.9], [0.0, 0.0, 1.0]])
+    distortion = np.array([0.092, -0.271, 0.0012, -0.0021, 0.091])
+    common = (colour_points - colour_view[:3, 3]) @ colour_view[:3, :3]
+    ir_points = common @ ir_view[:3, :3].T + ir_view[:3, 3]
+    pixels, _ = cv2.projectPoints(ir_points, np.zeros(3), np.zeros(3), matrix, distortion)
+    u, v = np.round(pixels[:, 0]).astype(int).T
+    depth = np.zeros((424, 512), dtype=np.uint16)
+    for x, y, z in sorted(zip(u, v, ir_points[:, 2]), key=lambda row: -row[2]):
+        if 0 <= x < 512 and 0 <= y < 424:
+            depth[y, x] = round(z * 8000)  # nearest last: a z-buffer
+    mask = np.where(depth > 0, 0, 255).astype(np.uint8)
+    rec = "Room_00000_01"
+    for folder in (f"recordings/{rec}/Depth", f"recordings/{rec}/BodyIndex", "calibration"):
+        (tmp_path / folder).mkdir(parents=True)
+    Image.fromarray(depth).save(tmp_path / f"recordings/{rec}/Depth/f.png")
+    Image.fromarray(mask).save(tmp_path / f"recordings/{rec}/BodyIndex/f.png")
+    (tmp_path / "calibration" / "Color.json").write_text(json.dumps({
+        "f": [1060.5, 1060.4], "c": [951.3, 536.8], "k": [0.0] * 5,
+        "view_mtx": colour_view[:3].tolist()}))
+    (tmp_path / "calibration" / "IR.json").write_text(json.dumps({
+        "camera_mtx": matrix.tolist(), "k": distortion.tolist(),
+        "view_mtx": ir_view[:3].tolist()}))
+
+    recording = Recording(tmp_path, rec)
+    assert recording.depth_calibration_path.name == "IR.json"
+    colour = Camera(1060.5, 1060.4, 951.3, 536.8)
+    depth_camera = load_depth_camera(recording.depth_calibration_path,
+                                     tmp_path / "calibration" / "Color.json")
+    points = load_depth_points(*recording.depth_paths("f"), colour, flip=False,
+                               max_points=3000, depth_camera=depth_camera)
+    vertices = torch.tensor(colour_points, dtype=torch.float32)
+    assert len(points) == 3000
+    assert float(torch.cdist(points, vertices).min(1).values.max()) < 0.01
+    registered = load_depth_points(*recording.depth_paths("f"), colour, flip=False,
+                                   max_points=3000)
+    assert float(torch.cdist(registered, vertices).min(1).values.median()) > 0.05
