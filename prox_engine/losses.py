@@ -94,9 +94,11 @@ def depth_data(out: BodyOutput, body: BodyModel, points: list[torch.Tensor | Non
             terms.append(out.vertices.new_zeros(()))
             continue
         verts = out.vertices[b]
-        visible = ((normals[b] * verts).sum(-1) < 0) & body.scene_vertices
-        dist = torch.cdist(cloud, verts[visible]).min(1).values
-        terms.append(gmof(dist ** 2, rho).mean())
+        visible = verts[((normals[b] * verts).sum(-1) < 0) & body.scene_vertices]
+        with torch.no_grad():  # which vertex is nearest; the distance keeps its gradient
+            nearest = torch.cdist(cloud, visible).argmin(1)
+        squared = ((cloud - visible[nearest]) ** 2).sum(-1)
+        terms.append(gmof(squared, rho).mean())
     return torch.stack(terms)
 
 
