@@ -41,7 +41,7 @@ from prox_engine.synthetic import (HEIGHT, WIDTH, frame_name, look_at, open_box,
                                    openpose_person, paint, project, transform, write_frame,
                                    write_photos, write_scene)
 
-from . import detector
+from . import detector, kinect
 from .poses import sample_phenotype, stature
 from .staging import STAGES, Staging, table
 
@@ -53,6 +53,7 @@ def make_benchmark(out: Path, seed: int, frames: int = 4, kinds: Sequence[str] =
                    body: AnnyBody | None = None) -> list[str]:
     """Write one recording per kind under out (PROX layout) and return the recording names."""
     body = body or AnnyBody.load()
+    kinect.write_calibration(Path(out))
     # Height z-scores spread over the kinds, so that each seed has short and tall people.
     z_scores = np.random.default_rng(seed).permutation(np.linspace(-2.0, 2.0, len(KINDS)))
     return [make_recording(Path(out), kind, seed, frames, body, z_scores[KINDS.index(kind)])
@@ -100,6 +101,8 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
         occluded += hidden
         write_frame(out, rec, name, people, verts_cam, kp_cam[:N_BODY])
     write_photos(out, rec, list(zip(names, vertices)), body.faces.numpy(), mesh, cam2world)
+    kinect.write_depth(out, rec, list(zip(names, vertices)), body.faces.numpy(), mesh,
+                       cam2world, np.random.default_rng([seed, index, 1]))
     meta = {"kind": kind, "scene": scene, "seed": seed, "phenotype": phenotype,
             "stature_m": stature(body, phenotype), "frames": names,
             "contact_parts": staging.contacts, "camera_distance_m": round(distance, 3),

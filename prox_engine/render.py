@@ -193,6 +193,13 @@ class SceneRenderer:
             out[mask] = (1 - FLAG_OPACITY) * out[mask] + FLAG_OPACITY * target
         return out.round().astype(np.uint8)
 
+    def depth(self, view: str, bodies: list[BodyMesh]) -> tuple[np.ndarray, np.ndarray]:
+        """Depth along the view's axis (H, W; 0 where nothing is) of the scene with the
+        bodies in it, and of the bodies alone."""
+        meshes = [b.mesh for b in bodies]
+        return (self._draw(view, meshes, with_scene=True)[1],
+                self._draw(view, meshes, with_scene=False)[1])
+
     def _draw(self, view: str, meshes: list[pyrender.Mesh], with_scene: bool,
               flags: int = pyrender.RenderFlags.NONE) -> tuple[np.ndarray, np.ndarray]:
         """Colour (H, W, 3) and depth (H, W; 0 where nothing was drawn)."""

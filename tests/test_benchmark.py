@@ -8,9 +8,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
+from PIL import Image
 
 from benchmarks.evaluate import procrustes
 from benchmarks.generate import ground_truth_check, make_benchmark
+from prox_engine.dataset import Recording, load_calibration, load_depth_camera
+from prox_engine.depth import load_depth_points
 from prox_engine.keypoints import load_keypoints
 
 from .test_render import skin_at_torso
@@ -43,6 +47,22 @@ def test_generated_truth_touches_without_penetrating(tmp_path, body):
         people = json.loads(path.read_text())["people"]
         confidence = [sum(p["pose_keypoints_2d"][2::3]) for p in people]
         assert np.isclose(load_keypoints(path).data[:25, 2].sum(), max(confidence), atol=1e-3)
+    # Kinect depth from its own, distorted camera beside the colour one: read through
+    # IR.json, the body-mask points land on the true body (noise grows with depth; points
+    # fall between the body's vertices).
+    recording = Recording(tmp_path, rec)
+    depth_camera = load_depth_camera(recording.depth_calibration_path,
+                                     recording.calibration_path)
+    camera = load_calibration(recording.calibration_path)
+    for frame in json.loads((tmp_path / "ground_truth" / rec / "meta.json").read_text()
+                            )["frames"]:
+        with Image.open(recording.depth_paths(frame)[0]) as image:
+            assert image.size == (512, 424)
+        points = load_depth_points(*recording.depth_paths(frame), camera, False, 2000,
+                                   depth_camera=depth_camera)
+        truth = np.load(tmp_path / "ground_truth" / rec / f"{frame}.npz")["vertices"]
+        gap = torch.cdist(points, torch.tensor(truth, dtype=torch.float32)).min(1).values
+        assert len(points) == 2000 and float(gap.median()) < 0.015
 
 
 def test_small_benchmark_prox_beats_rgb(tmp_path):
