@@ -117,3 +117,18 @@ def test_kinect_depth_through_its_ir_calibration_lands_on_the_body(tmp_path, bod
     registered = load_depth_points(*recording.depth_paths("f"), colour, flip=False,
                                    max_points=3000)
     assert float(torch.cdist(registered, vertices).min(1).values.median()) > 0.05
+
+
+@pytest.mark.parametrize("content, problem", [
+    ('{"k": [0, 0, 0, 0, 0]}', "needs 'camera_mtx'"),
+    ('{"camera_mtx": [1, 0, 0, 0, 1, 0, 0, 0, 1], "view_mtx": [1, 2]}',
+     "'view_mtx' must have 12 numbers"),
+    ("not json", "not valid JSON")])
+def test_bad_depth_calibration_names_the_file(tmp_path, content, problem):
+    from prox_engine.dataset import load_depth_camera
+
+    (tmp_path / "IR.json").write_text(content)
+    (tmp_path / "Color.json").write_text('{"f": [1000, 1000], "c": [960, 540]}')
+    with pytest.raises(InputError, match=problem) as error:
+        load_depth_camera(tmp_path / "IR.json", tmp_path / "Color.json")
+    assert error.value.path.endswith("IR.json")
