@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 import trimesh
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from prox_engine.camera import Camera
-from prox_engine.geometry import axis_angle_to_matrix
 from prox_engine.output import atomic_write_text
 from prox_engine.render import BodyMesh, SceneRenderer
 
@@ -29,15 +29,16 @@ DEPTH_SCALE = 8000.0  # metres -> PNG value (mm x 8)
 NOISE = 0.0004  # axial noise sigma at 1 m (m); it grows with the square of the depth
 
 
-def colour_to_depth() -> np.ndarray:
+def _colour_to_depth() -> np.ndarray:
     """The rigid transform (4, 4) taking colour-camera points to the depth camera's frame:
     ``IR.json``'s ``view_mtx`` when ``Color.json`` has none (the colour frame is common)."""
-    import torch
-
     view = np.eye(4)
-    view[:3, :3] = axis_angle_to_matrix(torch.tensor([0.004, 0.015, -0.006])).double().numpy()
+    view[:3, :3] = Rotation.from_rotvec([0.004, 0.015, -0.006]).as_matrix()
     view[:3, 3] = [-0.052, 0.0005, 0.002]
     return view
+
+
+COLOUR_TO_DEPTH = _colour_to_depth()
 
 
 def write_calibration(out: Path) -> None:
@@ -45,7 +46,7 @@ def write_calibration(out: Path) -> None:
     (out / "calibration").mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "calibration" / "IR.json", json.dumps({
         "camera_mtx": MATRIX.tolist(), "k": DISTORTION.tolist(),
-        "view_mtx": colour_to_depth()[:3].tolist()}))
+        "view_mtx": COLOUR_TO_DEPTH[:3].tolist()}))
 
 
 def write_depth(out: Path, rec: str, frames: list[tuple[str, np.ndarray]], faces: np.ndarray,
@@ -53,7 +54,7 @@ def write_depth(out: Path, rec: str, frames: list[tuple[str, np.ndarray]], faces
                 ) -> None:
     """Depth and body-index frames of the true bodies (world-frame vertices per frame) in
     the scene, seen from the depth camera of a colour camera at ``cam2world``."""
-    depth_pose = cam2world @ np.linalg.inv(colour_to_depth())
+    depth_pose = cam2world @ np.linalg.inv(COLOUR_TO_DEPTH)
     pinhole = Camera(MATRIX[0, 0], MATRIX[1, 1], MATRIX[0, 2], MATRIX[1, 2], width=WIDTH,
                      height=HEIGHT)
     every = np.concatenate([v for _, v in frames])

@@ -44,13 +44,14 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     vertices inside it plus, with ``use_support``, how far the body's underside is from
     resting on an upward-facing surface, plus a weak prior on body size. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
-    ``contact_parts`` vertex indices per part. Returns (B,) scales and (B,) their costs but the size prior's (0:
-    every part touches, nothing enters, the body rests on a surface): how well the body can
-    meet the scene at all, comparable between bodies fitted at different sizes."""
+    ``contact_parts`` vertex indices per part. Returns (B,) scales and (B,) their costs
+    without the size prior (0: every part touches, nothing enters, the body rests on a
+    surface): how well the body can meet the scene at all, comparable between bodies fitted
+    at different sizes."""
     scales = SCALES[:, None, None]
+    prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
     best, lowest = [], []
     for b in range(vertices.shape[0]):
-        prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
         cost = torch.zeros_like(prior)
         scaled = scales * vertices[b, scene_vertices]  # (S, N, 3)
         signed = scene.signed_distance(scaled) if use_penetration or use_support else None

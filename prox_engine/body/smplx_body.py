@@ -368,14 +368,18 @@ class SMPLXBody(BodyModel):
     def forward_axis(self) -> torch.Tensor:
         return torch.tensor([0.0, 0.0, 1.0])
 
+    def _hand_offsets(self, hand: torch.Tensor) -> torch.Tensor:
+        """(B, 2, 45) finger rotations relative to the mean hand, of ``hand_pose`` (decoded
+        from its PCA coefficients when fitted with PCA)."""
+        if self.hand_pca:
+            hand = torch.einsum("bsp,spk->bsk", hand.view(-1, 2, self.hand_pca),
+                                self.hand_basis)
+        return hand.reshape(-1, 2, 45)
+
     def finger_pose(self, params: Params) -> torch.Tensor:
         """(B, 30, 3) axis-angle of the left then the right fingers: the mean hand plus
-        ``hand_pose`` (decoded from its PCA coefficients when fitted with PCA)."""
-        hand = params["hand_pose"]
-        if self.hand_pca:
-            coeffs = hand.view(-1, 2, self.hand_pca)
-            hand = torch.einsum("bsp,spk->bsk", coeffs, self.hand_basis)
-        return (hand.reshape(-1, 2, 45) + self.hand_mean).reshape(-1, 30, 3)
+        the ``hand_pose`` offsets."""
+        return (self._hand_offsets(params["hand_pose"]) + self.hand_mean).reshape(-1, 30, 3)
 
     # ----------------------------------------------------------------- forward
     def forward(self, params: Params) -> BodyOutput:
@@ -453,8 +457,7 @@ class SMPLXBody(BodyModel):
     # ----------------------------------------------------------------- export
     def export(self, params: Params, index: int) -> dict:
         value = lambda name: params[name][index].detach().tolist()  # noqa: E731
-        fingers = (self.finger_pose({"hand_pose": params["hand_pose"][index:index + 1]})[0]
-                   - self.hand_mean.view(30, 3))
+        fingers = self._hand_offsets(params["hand_pose"][index:index + 1])[0].reshape(30, 3)
         body_pose = self.body_pose(params)[index].detach().tolist()
         return {
             "model": "smplx", "gender": self.gender, "model_file": self.source,
