@@ -15,6 +15,7 @@ import functools
 import math
 
 import numpy as np
+import roma
 import torch
 
 from .. import assets
@@ -142,7 +143,9 @@ class AnnyBody(BodyModel):
         weights[1] = (weights[2] + weights[5]) / 2  # neck: mid-shoulders
         weights[8] = (weights[9] + weights[12]) / 2  # mid-hip
         self.register_buffer("keypoint_weights", weights[BODY])
+        self._rest_cache: dict[str, torch.Tensor] | None = None
         self._setup_static_geometry()
+        self._setup_keypoint_anchors()
 
     @classmethod
     def load(cls, age_years: float = ADULT_AGE_YEARS) -> "AnnyBody":
@@ -338,31 +341,80 @@ class AnnyBody(BodyModel):
         pose[:, self.hand_index, :3, :3] = axis_angle_to_matrix(params["hand_pose"])
         return pose
 
-    def rest(self, shape: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Rest vertices and bone poses for shape logits (cached while shape is frozen)."""
-        cached = getattr(self, "_rest_cache", None)
-        frozen = not shape.requires_grad
-        if frozen and cached is not None and torch.equal(cached[0], shape):
-            return cached[1]
-        phenotype = torch.sigmoid(shape)
-        coeffs = self.model._get_phenotype_blendshape_coefficients(
-            phenotype, phenotype.new_zeros(phenotype.shape[0], 0),
-            phenotype.new_zeros(phenotype.shape[0], 0))
-        rest = self.model.get_rest_model(coeffs)
-        if frozen:
-            self._rest_cache = (shape.detach().clone(), rest)
-        return rest
+    def _setup_keypoint_anchors(self) -> None:
+        """The body keypoints and fingertips without skinning the mesh. A skinned vertex is
+        sum_j w_vj T_j [x_v; 1], so a keypoint that is a weighted sum of vertices is
+        sum_j T_j [a_kj; h_kj] with a_kj = sum_v W_kv w_vj x_v and h_kj = sum_v W_kv w_vj:
+        one anchor per (keypoint, bone) pair that shares a vertex (a few hundred), linear in
+        the shape's blendshape coefficients like the vertices themselves."""
+        model = self.model
+        count = len(model.template_vertices)
+        weights = torch.cat([self.keypoint_weights, torch.zeros(len(self.fingertips), count)])
+        weights[len(self.keypoint_weights) + torch.arange(len(self.fingertips)),
+                self.fingertips] = 1.0
+        point, vertex = weights.nonzero(as_tuple=True)
+        bone = model.vertex_bone_indices[vertex].long()  # (N, bones per vertex)
+        share = weights[point, vertex, None] * model.vertex_bone_weights[vertex]
+        keys = point[:, None] * len(self.bone_labels) + bone
+        used = share != 0
+        pairs, slot = torch.unique(keys[used], return_inverse=True)
+        mix = torch.zeros(len(pairs), count).index_put_(
+            (slot, vertex[:, None].expand_as(keys)[used]), share[used], accumulate=True)
+        self.register_buffer("anchor_point", pairs // len(self.bone_labels))
+        self.register_buffer("anchor_bone", pairs % len(self.bone_labels))
+        self.register_buffer("anchor_weight", mix.sum(1))  # h
+        self.register_buffer("anchor_template", mix @ model.template_vertices)  # a at coeffs 0
+        self.register_buffer("anchor_blendshapes", torch.einsum(  # (C, pairs, 3)
+            "pv,cvd->cpd", mix, model.blendshapes))
 
-    def forward(self, params: Params) -> BodyOutput:
-        rest = self.rest(params["shape"])
+    def _rest(self, shape: torch.Tensor, vertices: bool) -> dict[str, torch.Tensor]:
+        """Rest bone poses, keypoint anchors and (with ``vertices``) rest vertices for shape
+        logits, as anny's ``cached`` bone orientation computes them; kept while the shape
+        is frozen."""
+        cached = self._rest_cache
+        frozen = not shape.requires_grad
+        if not (frozen and cached is not None and torch.equal(cached["shape"], shape)):
+            model = self.model
+            phenotype = torch.sigmoid(shape)
+            empty = phenotype.new_zeros(phenotype.shape[0], 0)
+            coeffs = model._get_phenotype_blendshape_coefficients(phenotype, empty, empty)
+            heads = model.template_bone_heads + torch.einsum(
+                "bc,ckd->bkd", coeffs, model.bone_heads_blendshapes)
+            orientation = roma.special_procrustes(
+                model.bone_template_orientation_matrices + torch.einsum(
+                    "bc,ckij->bkij", coeffs, model.bone_orientation_blendshapes))
+            if model.rest_orientation_refiner is not None:
+                orientation = model.rest_orientation_refiner(orientation, heads)
+            cached = {"shape": shape.detach().clone(), "coeffs": coeffs,
+                      "bone_poses": roma.Rigid(orientation, heads).to_homogeneous(),
+                      "anchors": self.anchor_template + torch.einsum(
+                          "bc,cpd->bpd", coeffs, self.anchor_blendshapes)}
+            if frozen:
+                self._rest_cache = cached
+        if vertices and "vertices" not in cached:
+            cached["vertices"] = self.model.template_vertices + torch.einsum(
+                "bc,cvd->bvd", cached["coeffs"], self.model.blendshapes)
+        return cached
+
+    def forward(self, params: Params, vertices: bool = True) -> BodyOutput:
+        rest = self._rest(params["shape"], vertices)
         pose = self._pose_matrices(params)
-        transforms, bone_poses = self.model.get_bone_transforms(pose, rest["rest_bone_poses"])
-        vertices = self.model.get_skinned_vertices(
-            rest["rest_vertices"].expand(pose.shape[0], -1, -1), transforms)
-        keypoints = vertices.new_zeros(vertices.shape[0], N_KEYPOINTS, 3)
-        keypoints[:, BODY] = torch.einsum("kv,bvd->bkd", self.keypoint_weights, vertices)
+        batch = pose.shape[0]
+        transforms, bone_poses = self.model.get_bone_transforms(pose, rest["bone_poses"])
+        skinned = None
+        if vertices:
+            skinned = self.model.get_skinned_vertices(
+                rest["vertices"].expand(batch, -1, -1), transforms)
+        anchor = transforms[:, self.anchor_bone, :3]  # (B, pairs, 3, 4)
+        moved = ((anchor[..., :3] @ rest["anchors"].expand(batch, -1, -1)[..., None])[..., 0]
+                 + anchor[..., 3] * self.anchor_weight[:, None])
+        body_count = len(self.keypoint_weights)
+        points = moved.new_zeros(batch, body_count + len(self.fingertips), 3).index_add(
+            1, self.anchor_point, moved)
+        keypoints = moved.new_zeros(batch, N_KEYPOINTS, 3)
+        keypoints[:, BODY] = points[:, :body_count]
         heads = bone_poses[:, self.hand_heads, :3, 3]  # (B, 2 * 16, 3)
-        tips = vertices[:, self.fingertips]  # (B, 10, 3)
+        tips = points[:, body_count:]  # (B, 10, 3)
         for side, slot in enumerate((LEFT_HAND, RIGHT_HAND)):
             h = heads[:, side * 16:(side + 1) * 16]
             t = tips[:, side * 5:(side + 1) * 5]
@@ -370,9 +422,8 @@ class AnnyBody(BodyModel):
             keypoints[:, slot] = torch.cat([h[:, :1], fingers.reshape(-1, 20, 3)], 1)
         centres = torch.einsum("bsij,sj->bsi", bone_poses[:, self.sphere_bone, :3, :],
                                self.sphere_local)
-        spheres = torch.cat([centres, self.sphere_radius.expand(centres.shape[0], -1)[..., None]],
-                            -1)
-        return BodyOutput(vertices=vertices, keypoints=keypoints, spheres=spheres)
+        spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)
+        return BodyOutput(vertices=skinned, keypoints=keypoints, spheres=spheres)
 
     @property
     def keypoint_mask(self) -> torch.Tensor:

@@ -13,7 +13,7 @@ Params = dict[str, torch.Tensor]
 class BodyOutput:
     """A batch of posed bodies in the fitting frame (camera coordinates)."""
 
-    vertices: torch.Tensor  # (B, V, 3)
+    vertices: torch.Tensor | None  # (B, V, 3); None when not asked for
     keypoints: torch.Tensor  # (B, 118, 3), OpenPose order (see prox_engine.keypoints)
     spheres: torch.Tensor | None = None  # (B, S, 4) collision proxies: centre, radius
 
@@ -38,8 +38,9 @@ class BodyModel(ABC, torch.nn.Module):
         """Parameters of a mean-shaped body at the origin in one of ``postures``."""
 
     @abstractmethod
-    def forward(self, params: Params) -> BodyOutput:
-        """Pose the body."""
+    def forward(self, params: Params, vertices: bool = True) -> BodyOutput:
+        """Pose the body. Without ``vertices`` a model may skip the mesh (keypoints and
+        spheres only), which is what most fitting stages need."""
 
     @abstractmethod
     def pose_prior(self, params: Params) -> torch.Tensor:

@@ -382,7 +382,9 @@ class SMPLXBody(BodyModel):
         return (self._hand_offsets(params["hand_pose"]) + self.hand_mean).reshape(-1, 30, 3)
 
     # ----------------------------------------------------------------- forward
-    def forward(self, params: Params) -> BodyOutput:
+    def forward(self, params: Params, vertices: bool = True) -> BodyOutput:
+        """Pose the body; the keypoints need the mesh (face landmarks), so it is always
+        posed."""
         batch = params["transl"].shape[0]
         coeffs = torch.cat([params["betas"], params["expression"]], 1)
         shaped = self.v_template + torch.einsum("bl,vdl->bvd", coeffs, self.shapedirs)
