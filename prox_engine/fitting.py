@@ -14,11 +14,15 @@ from . import losses
 from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
-from .geometry import vertex_normals
+from .geometry import VertexNormals, vertex_normals
 from .keypoints import BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, Keypoints, side_swap
 from .initialisation import best_start
 from .scale_search import best_scale
 from .scene import Scene
+
+
+# Terms that read the posed mesh; stages without them pose keypoints and spheres only.
+MESH_TERMS = ("penetration", "contact", "depth")
 
 
 @dataclass
@@ -57,8 +61,8 @@ class Fitter:
         self.on_stage = on_stage  # told each stage's name as it starts (progress, cancelling)
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
-        self.contact_ids = (torch.cat(self.contact_part_ids) if self.contact_part_ids
-                            else torch.zeros(0, dtype=torch.long))
+        self.contact_normals = (VertexNormals(body.faces, torch.cat(self.contact_part_ids))
+                                if self.contact_part_ids else None)
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self.evaluations = 0  # body rows evaluated in the current fit
 
@@ -196,9 +200,9 @@ class Fitter:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:
             terms["penetration"] = w["penetration"] * losses.penetration(out, body, self.scene)
-        if w.get("contact", 0) > 0 and len(self.contact_ids):
+        if w.get("contact", 0) > 0 and self.contact_normals is not None:
             terms["contact"] = w["contact"] * losses.contact(
-                out, body, self.scene, self.contact_ids, cfg.contact_rho,
+                out, self.scene, self.contact_normals, cfg.contact_rho,
                 cfg.contact_max_angle, cfg.contact_max_distance)
         if w.get("depth", 0) > 0 and any(d is not None for d in depth):
             terms["depth"] = w["depth"] * losses.depth_data(out, body, depth, cfg.depth_rho)
@@ -212,8 +216,11 @@ class Fitter:
         """L-BFGS calls on the ``free`` parameters until the loss settles; returns the
         terms at the accepted point (not at the line search's last probe)."""
 
+        mesh = any(stage.weights.get(term, 0) > 0 for term in MESH_TERMS)
+
         def objective() -> dict[str, torch.Tensor]:
-            return self._terms(stage, self.body(params), params, target, conf, depth, previous)
+            return self._terms(stage, self.body(params, vertices=mesh), params, target, conf,
+                               depth, previous)
 
         accepted: dict[str, torch.Tensor] = {}  # terms after the last kept call
 

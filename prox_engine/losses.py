@@ -7,7 +7,7 @@ import torch
 
 from .body.base import BodyModel, BodyOutput
 from .camera import Camera
-from .geometry import vertex_normals
+from .geometry import VertexNormals, vertex_normals
 from .keypoints import BODY
 from .scene import Scene
 
@@ -36,16 +36,16 @@ def penetration_energy(points: torch.Tensor, scene: Scene) -> torch.Tensor:
     (so that shallow penetrations still get a push), d being the signed distance: exact
     (from the triangles) within two voxels of a surface, where furniture thinner than a
     voxel would otherwise be missed, else from the grid."""
-    depth = torch.relu(-scene.signed_distance(points, exact_band=2 * scene.sdf.voxel_size))
+    depth = scene.penetration_depth(points, exact_band=2 * scene.sdf.voxel_size)
     return (depth ** 2 + depth).sum(-1)
 
 
-def contact(out: BodyOutput, body: BodyModel, scene: Scene, vertex_ids: torch.Tensor,
-            rho: float, max_angle_deg: float, max_distance: float) -> torch.Tensor:
-    """Contact energy of the body's contact vertices, (B,)."""
+def contact(out: BodyOutput, scene: Scene, normals: VertexNormals, rho: float,
+            max_angle_deg: float, max_distance: float) -> torch.Tensor:
+    """Contact energy of the body's contact vertices (``normals.ids``), (B,)."""
     with torch.no_grad():  # the normals only choose which vertices qualify
-        normals = vertex_normals(out.vertices, body.faces)[:, vertex_ids]
-    return contact_energy(out.vertices[:, vertex_ids], normals, scene, rho, max_angle_deg,
+        facing = normals(out.vertices)
+    return contact_energy(out.vertices[:, normals.ids], facing, scene, rho, max_angle_deg,
                           max_distance)
 
 
@@ -58,8 +58,11 @@ def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
     the SDF gradient). The SDF makes this one grid lookup per point instead of a
     nearest-triangle search, exact on planes and close to it elsewhere."""
     dist = scene.signed_distance(points).abs()
-    facing = -(scene.world_normals(normals) * scene.sdf_normals(points)).sum(-1)
-    valid = ((facing > math.cos(math.radians(max_angle_deg))) & (dist < max_distance)).detach()
+    valid = dist.detach() < max_distance
+    near = valid.nonzero(as_tuple=True)  # the facing test (six SDF lookups) only where near
+    facing = -(scene.world_normals(normals[near]) * scene.sdf_normals(points[near].detach())
+               ).sum(-1)
+    valid[near] = facing > math.cos(math.radians(max_angle_deg))
     return dist, valid
 
 
@@ -76,7 +79,7 @@ def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rh
 def self_penetration(out: BodyOutput, body: BodyModel) -> torch.Tensor:
     """Squared overlap of collision spheres that must not meet (arms/torso, leg/leg)."""
     if out.spheres is None or len(body.collision_pairs) == 0:
-        return out.vertices.new_zeros(out.vertices.shape[0])
+        return out.keypoints.new_zeros(out.keypoints.shape[0])
     a = out.spheres[:, body.collision_pairs[:, 0]]
     b = out.spheres[:, body.collision_pairs[:, 1]]
     overlap = torch.relu(a[..., 3] + b[..., 3] - (a[..., :3] - b[..., :3]).norm(dim=-1))
@@ -105,5 +108,5 @@ def depth_data(out: BodyOutput, body: BodyModel, points: list[torch.Tensor | Non
 def temporal(out: BodyOutput, previous: torch.Tensor | None) -> torch.Tensor:
     """Squared 3D keypoint motion (m^2) to the previous frame's fit (sequence mode)."""
     if previous is None:
-        return out.vertices.new_zeros(out.vertices.shape[0])
+        return out.keypoints.new_zeros(out.keypoints.shape[0])
     return ((out.keypoints[:, BODY] - previous[:, BODY]) ** 2).sum((1, 2))

@@ -47,23 +47,34 @@ class Scene:
         camera-to-world rotation (its third column is the viewing axis in the world)."""
         return self.cam2world[2, :3].clone()
 
-    def signed_distance(self, points_cam: torch.Tensor, exact_band: float = 0.0
-                        ) -> torch.Tensor:
-        """Signed distances at camera-frame points (..., 3), negative inside the scene:
-        from the SDF grid, and, for points the grid puts within ``exact_band`` of a
-        surface, from the nearest triangles themselves (differentiable too), which resolves
-        furniture thinner than a voxel."""
+    def signed_distance(self, points_cam: torch.Tensor) -> torch.Tensor:
+        """Signed distances from the SDF grid at camera-frame points (..., 3), negative
+        inside the scene."""
+        return self.sdf(self.to_world(points_cam))
+
+    def penetration_depth(self, points_cam: torch.Tensor, exact_band: float) -> torch.Tensor:
+        """How deep (>= 0, differentiable) camera-frame points (..., 3) are inside the
+        scene: from the SDF grid, and, for points the grid puts within ``exact_band`` of a
+        surface, from the nearest triangles themselves, which resolves furniture thinner
+        than a voxel. The triangles are searched without gradient first; only the points
+        found inside (few) are searched again with it."""
         world = self.to_world(points_cam)
         grid = self.sdf(world)
-        if exact_band <= 0:
-            return grid
         flat, values = world.reshape(-1, 3), grid.reshape(-1)
         near = torch.nonzero(values.detach().abs() < exact_band).flatten()
-        if len(near) == 0:
-            return grid
-        exact, _ = triangle_signed_distance(flat[near], self._tree, self._sample_face,
-                                            self._triangles64, self._normals64, k=4)
-        return values.index_put((near,), exact.to(values.dtype)).reshape(grid.shape)
+        if len(near):
+            with torch.no_grad():
+                exact, _ = self._triangle_distance(flat[near])
+            values = values.index_put((near,), exact.to(values.dtype))
+            inside = near[exact < 0]
+            if len(inside):
+                exact, _ = self._triangle_distance(flat[inside])
+                values = values.index_put((inside,), exact.to(values.dtype))
+        return torch.relu(-values).reshape(grid.shape)
+
+    def _triangle_distance(self, world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return triangle_signed_distance(world, self._tree, self._sample_face,
+                                        self._triangles64, self._normals64, k=4)
 
     def sdf_normals(self, points_cam: torch.Tensor) -> torch.Tensor:
         """Outward scene normals (world frame, no gradient) at camera-frame points."""

@@ -87,6 +87,39 @@ def test_penetration_gradient_pushes_vertex_out():
     assert penetration_energy(outside, scene).item() == 0
 
 
+def test_penetration_inside_a_slab_thinner_than_a_voxel_pushes_out():
+    """A 2 cm slab on a 10 cm grid: the grid misses it, the exact band finds the point
+    inside and pushes it out through the nearer face; points outside cost nothing."""
+    slab = trimesh.creation.box(extents=(1.0, 1.0, 0.02))
+    scene = _scene(slab, dim=24)
+    assert scene.sdf.voxel_size > 0.08
+    inside = torch.tensor([[[0.1, -0.2, 0.004]]], requires_grad=True)
+    assert scene.signed_distance(inside.detach()).item() > 0  # the grid alone misses it
+    energy = penetration_energy(inside, scene)
+    assert energy.item() > 0
+    energy.sum().backward()
+    step = -inside.grad[0, 0]
+    assert step[2] > 0 and step[2].abs() > 10 * step[:2].abs().max()  # out through the top
+    above = torch.tensor([[[0.1, -0.2, 0.02], [0.3, 0.3, -0.03]]], requires_grad=True)
+    energy = penetration_energy(above, scene)
+    energy.sum().backward()
+    assert energy.item() == 0 and above.grad.abs().max() == 0
+
+
+def test_contact_normals_of_a_vertex_set_are_the_mesh_normals(body):
+    """The contact term's normals, from the faces around the contact vertices only, are
+    the whole mesh's vertex normals at those vertices (repeated vertices included)."""
+    from prox_engine.geometry import VertexNormals, vertex_normals
+
+    params = body.init_params(2, "sitting")
+    params["global_orient"][1] = torch.tensor([0.3, -1.2, 0.5])
+    vertices = body(params).vertices
+    ids = torch.cat([body.contact_parts["gluteus"], body.contact_parts["left_hand"],
+                     body.contact_parts["gluteus"][:5]])
+    expected = vertex_normals(vertices, body.faces)[:, ids]
+    assert torch.allclose(VertexNormals(body.faces, ids)(vertices), expected, atol=1e-5)
+
+
 def test_contact_pulls_near_vertex_and_ignores_far_one():
     scene = _scene(plane_mesh())
     down = torch.tensor([[[0.0, 0.0, -1.0]]])  # body surface facing the floor
