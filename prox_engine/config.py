@@ -47,6 +47,10 @@ class FitConfig:
     # With a scale search, the starts are compared by objective + this weight times the
     # search's cost (how badly the body meets the scene at its best scale, 0-2).
     start_scene_weight: float = 0.0
+    # After the start choice, each frame's arms are also restarted held forward (one or
+    # both), fitted side by side through the next stage, and the lowest objective is kept:
+    # an arm seen from the front projects alike pointing forward or back.
+    arm_restarts: bool = True
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

@@ -48,6 +48,33 @@ class FitResult:
     swapped: list[str] = field(default_factory=list)  # parts whose sides were relabelled
 
 
+@dataclass
+class _Rows:
+    """What the stages fit, one row per frame and candidate: the parameters, the keypoints
+    as labelled for that row, depth points and the parts relabelled."""
+
+    params: Params
+    target: torch.Tensor  # (rows, K, 2)
+    conf: torch.Tensor  # (rows, K)
+    depth: list
+    labels: list[tuple[str, ...]]
+
+    def widened(self, variants: list[Params]) -> "_Rows":
+        """Each row followed by the same row with each variant's parameters."""
+        count = 1 + len(variants)
+        params = {k: torch.stack([p[k] for p in [self.params, *variants]], 1)
+                  .flatten(0, 1).contiguous() for k in self.params}
+        return _Rows(params, self.target.repeat_interleave(count, 0),
+                     self.conf.repeat_interleave(count, 0),
+                     [d for d in self.depth for _ in range(count)],
+                     [lab for lab in self.labels for _ in range(count)])
+
+    def taken(self, rows: list[int]) -> "_Rows":
+        return _Rows({k: v[rows].contiguous() for k, v in self.params.items()},
+                     self.target[rows], self.conf[rows], [self.depth[r] for r in rows],
+                     [self.labels[r] for r in rows])
+
+
 class Fitter:
     """Fits one body model to frames seen by one camera, optionally inside a scene."""
 
@@ -89,7 +116,6 @@ class Fitter:
         stage_evaluations: dict[str, int] = {}
         target, conf = self._targets(frames)
         conf[:, self.config.ignore_keypoints] = 0
-        depth = [f.depth_points for f in frames]
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}
         if warm_start is None:
@@ -105,20 +131,21 @@ class Fitter:
             labels = self._closest_labelling(target, conf, previous_keypoints)
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
-        keep = len(labels) // len(frames)  # starts per frame, fitted side by side
-        if keep > 1:
-            target, conf = target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0)
-            depth = [d for d in depth for _ in range(keep)]
+        # Rows per frame fitted side by side (starts, then arm restarts) and the stage
+        # after which each frame keeps its best row.
+        keep, choose_after = len(labels) // len(frames), self.config.start_stages
+        rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
+                     [f.depth_points for f in frames for _ in range(keep)], labels)
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
-            target[b], conf[b] = target[b, order], conf[b, order]
+            rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]
         final: dict[str, torch.Tensor] = {}
         rescaled = warm_start is not None or not self.config.scale_search
         for index, stage in enumerate(stages):
             self._announce(stage.name)
             if not rescaled and self._scene_stage(stage):
                 t0, before = time.perf_counter(), self.evaluations
-                self._rescale(params)
+                self._rescale(rows.params)
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
@@ -128,19 +155,23 @@ class Fitter:
                 free += self.body.shape_group()
             if stage.optimize_hands and has_hands:
                 free.append("hand_pose")
-            final = self._run_stage(stage, params, free, target, conf, depth,
-                                    previous_keypoints)
-            if keep > 1 and index + 1 == self.config.start_stages:
-                rows = self._best_starts(params, final, keep)
-                params = {k: v[rows].contiguous() for k, v in params.items()}
-                target, conf = target[rows], conf[rows]
-                final = {k: v[rows] for k, v in final.items()}
-                depth, labels = [depth[r] for r in rows], [labels[r] for r in rows]
-                keep = 1
+            final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
+                                    rows.depth, previous_keypoints)
+            if keep > 1 and index + 1 == choose_after:
+                best = self._best_rows(rows.params, final, keep,
+                                       by_scene=choose_after == self.config.start_stages)
+                rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
+            if (warm_start is None and self.config.arm_restarts
+                    and index + 1 == self.config.start_stages < len(stages)):
+                variants = self.body.arm_restarts(rows.params)
+                if variants:
+                    rows = rows.widened(variants)
+                    keep, choose_after = 1 + len(variants), index + 2
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
                                              + self.evaluations - before)
+        params, labels = rows.params, rows.labels
         before = self.evaluations
         with torch.no_grad():
             out = self.body(params)
@@ -155,13 +186,13 @@ class Fitter:
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
 
-    def _best_starts(self, params: Params, terms: dict[str, torch.Tensor], keep: int
-                     ) -> list[int]:
-        """Rows (one per frame) of the starts, ``keep`` per frame, with the lowest objective
-        (``terms``) plus, with a scale search, ``start_scene_weight`` times how badly each
-        can meet the scene at its best scale."""
+    def _best_rows(self, params: Params, terms: dict[str, torch.Tensor], keep: int,
+                   by_scene: bool) -> list[int]:
+        """Rows (one per frame) of the candidates, ``keep`` per frame, with the lowest
+        objective (``terms``) plus, ``by_scene`` with a scale search,
+        ``start_scene_weight`` times how badly each can meet the scene at its best scale."""
         score = sum(terms.values())
-        if self.config.start_scene_weight > 0 and self._scales_searched():
+        if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
             score = score + self.config.start_scene_weight * self._scale_search(params)[1]
         score = score.view(-1, keep)
         return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()

@@ -343,6 +343,6 @@ def test_start_choice_asks_which_start_can_sit_on_the_chair(tmp_path, body):
 
     camera = Camera(fx=1000.0, fy=1000.0, cx=960.0, cy=540.0)
     config = load_config("prox")
-    assert Fitter(body, camera, config, scene)._best_starts(starts, terms, 2) == [1]
+    assert Fitter(body, camera, config, scene)._best_rows(starts, terms, 2, by_scene=True) == [1]
     config.start_scene_weight = 0.0
-    assert Fitter(body, camera, config, scene)._best_starts(starts, terms, 2) == [0]
+    assert Fitter(body, camera, config, scene)._best_rows(starts, terms, 2, by_scene=True) == [0]

@@ -87,6 +87,13 @@ _POSTURES = {
 }
 
 
+# An arm held forward (shoulder flexed, elbow half bent): where arm restarts begin.
+_ARM_FORWARD = {"upperarm01": ([0.35, 0.0, -0.55], [0.35, 0.0, 0.55]),
+                "upperarm02": ([0.0, 0.0, 0.0],) * 2,
+                "lowerarm01": ([0.6, 0.0, 0.0],) * 2,
+                "lowerarm02": ([0.0, 0.0, 0.0],) * 2}
+
+
 def _limit_key(bone: str) -> str:
     if bone in _LIMITS:
         return bone
@@ -321,6 +328,17 @@ class AnnyBody(BodyModel):
 
     def shape_group(self) -> list[str]:
         return ["shape"]
+
+    def arm_restarts(self, params: Params) -> list[Params]:
+        variants = []
+        for sides in (("L",), ("R",), ("L", "R")):
+            pose = params["body_pose"].clone()
+            for bone, values in _ARM_FORWARD.items():
+                for side in sides:
+                    pose[:, BODY_BONES.index(f"{bone}.{side}")] = torch.tensor(
+                        values[SIDES.index(side)])
+            variants.append({**params, "body_pose": pose})
+        return variants
 
     def root_pivot(self, params: Params) -> torch.Tensor:
         return params["transl"].new_zeros(params["transl"].shape)  # the root is the origin

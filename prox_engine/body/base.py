@@ -84,6 +84,11 @@ class BodyModel(ABC, torch.nn.Module):
         a latent code here instead of joint rotations)."""
         return ["body_pose"]
 
+    def arm_restarts(self, params: Params) -> list[Params]:
+        """Copies of ``params`` with the left, the right and both arms restarted held
+        forward; none for a model whose pose is a learned latent code."""
+        return []
+
     def prox_result(self, params: Params, index: int) -> dict | None:
         """The arrays of a PROX/SMPLify-X ``000.pkl`` for models that have one (SMPL-X)."""
         return None
