@@ -132,3 +132,41 @@ def test_bad_depth_calibration_names_the_file(tmp_path, content, problem):
     with pytest.raises(InputError, match=problem) as error:
         load_depth_camera(tmp_path / "IR.json", tmp_path / "Color.json")
     assert error.value.path.endswith("IR.json")
+
+
+def test_a_tall_person_starts_at_the_depth_clouds_distance(body):
+    """Keypoints alone put a person much taller than the prior's mean too close to a
+    tilted camera (0.8 m here), and the robust depth term, saturated that far off, barely
+    pulls. Before the first stage with the depth term each body is scaled about the camera
+    centre to the depth cloud's distance: the fit ends within 5 cm of the true depth."""
+    from prox_engine.config import FitConfig, Stage
+    from prox_engine.fitting import Fitter, Frame
+    from prox_engine.keypoints import N_KEYPOINTS, Keypoints
+
+    from .test_fitting import CAMERA, tilted_camera, world_to_camera
+
+    cam2world = tilted_camera()
+    params = body.init_params(1)
+    params["shape"][0, 4] = 3.0  # height: about the tallest adults
+    to_camera = cam2world[:2, 3] - np.array([0.2, 0.3])
+    params["global_orient"][0] = torch.tensor([0.0, 0.0, float(np.arctan2(to_camera[0], -to_camera[1]))])
+    with torch.no_grad():
+        out = body(params)
+    world = out.vertices[0] - out.vertices[0].mean(0) + torch.tensor([0.2, 0.3, 1.0])
+    vertices = world_to_camera(world, cam2world)
+    keypoints = world_to_camera(out.keypoints[0] - out.vertices[0].mean(0)
+                                + torch.tensor([0.2, 0.3, 1.0]), cam2world)
+    facing = (vertex_normals(vertices[None], body.faces)[0] * vertices).sum(-1) < 0
+    cloud = vertices[facing & body.scene_vertices][::10]
+    data = np.zeros((N_KEYPOINTS, 3))
+    data[:25, :2] = CAMERA.project(keypoints[:25]).numpy()
+    data[:25, 2] = 0.9
+    frame = Frame("f", Keypoints(data, has_hands=False, has_face=False), cloud)
+    config = FitConfig("depth", [
+        Stage("global", {"body": 1.0, "pose_prior": 30.0, "shape": 30.0, "bending": 30.0}),
+        Stage("body", {"body": 1.0, "pose_prior": 10.0, "shape": 10.0, "bending": 10.0,
+                       "depth": 1e5})], arm_restarts=False)
+    result = Fitter(body, CAMERA, config).fit([frame])[0]
+    torso = [2, 5, 9, 12]
+    error = abs(float(result.keypoints[torso, 2].mean() - keypoints[torso, 2].mean()))
+    assert error < 0.05, error
