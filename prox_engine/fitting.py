@@ -306,13 +306,11 @@ class Fitter:
         keypoints put 20-40 cm off."""
         with torch.no_grad():
             vertices = self.body(params).vertices
-            normals = vertex_normals(vertices, self.body.faces)
+            seen = losses.facing_camera(vertices, self.body)
         scale = torch.ones(len(vertices))
         for b, cloud in enumerate(depth):
-            if cloud is None or len(cloud) == 0:
-                continue
-            seen = ((normals[b] * vertices[b]).sum(-1) < 0) & self.body.scene_vertices
-            scale[b] = cloud.norm(dim=1).median() / vertices[b, seen].norm(dim=1).median()
+            if cloud is not None and len(cloud):
+                scale[b] = cloud.norm(dim=1).median() / vertices[b, seen[b]].norm(dim=1).median()
         return scale, vertices
 
     def _rescale(self, params: Params, scale: torch.Tensor, vertices: torch.Tensor) -> None:

@@ -86,18 +86,24 @@ def self_penetration(out: BodyOutput, body: BodyModel) -> torch.Tensor:
     return (overlap ** 2).sum(1)
 
 
+def facing_camera(vertices: torch.Tensor, body: BodyModel) -> torch.Tensor:
+    """(B, V) which body vertices (camera frame) face the camera: what a depth camera can
+    see of the body, eyes and tongue left out."""
+    normals = vertex_normals(vertices, body.faces)
+    return ((normals * vertices).sum(-1) < 0) & body.scene_vertices
+
+
 def depth_data(out: BodyOutput, body: BodyModel, points: list[torch.Tensor | None],
                rho: float) -> torch.Tensor:
     """Robust distance from each body-mask depth point to the nearest camera-facing body
     vertex (SMPLify-D); points per batch element, in camera coordinates."""
-    normals = vertex_normals(out.vertices, body.faces)
+    seen = facing_camera(out.vertices, body)
     terms = []
     for b, cloud in enumerate(points):
         if cloud is None or len(cloud) == 0:
             terms.append(out.vertices.new_zeros(()))
             continue
-        verts = out.vertices[b]
-        visible = verts[((normals[b] * verts).sum(-1) < 0) & body.scene_vertices]
+        visible = out.vertices[b, seen[b]]
         with torch.no_grad():  # which vertex is nearest; the distance keeps its gradient
             nearest = torch.cdist(cloud, visible).argmin(1)
         squared = ((cloud - visible[nearest]) ** 2).sum(-1)
