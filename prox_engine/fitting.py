@@ -17,7 +17,7 @@ from .config import FitConfig, Stage
 from .geometry import VertexNormals, vertex_normals
 from .keypoints import BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, Keypoints, side_swap
 from .initialisation import best_start
-from .scale_search import best_scale
+from .scale_search import best_scale, carrying_vertices
 from .scene import Scene
 
 
@@ -88,6 +88,7 @@ class Fitter:
         self.on_stage = on_stage  # told each stage's name as it starts (progress, cancelling)
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
+        self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
         self.contact_normals = (VertexNormals(body.faces, torch.cat(self.contact_part_ids))
                                 if self.contact_part_ids else None)
         self.events: list[str] = []  # of the current fit (see FitResult.events)
@@ -293,7 +294,8 @@ class Fitter:
         with torch.no_grad():
             vertices = body(params).vertices
             normals = vertex_normals(vertices, body.faces)
-        scale, cost = best_scale(vertices, normals, body.scene_vertices, self.contact_part_ids,
+        scale, cost = best_scale(vertices, normals, body.scene_vertices, self.carrying,
+                                 self.contact_part_ids,
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
                                  cfg.contact_max_distance, cfg.scale_support)

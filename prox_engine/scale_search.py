@@ -31,15 +31,37 @@ PRIOR_WEIGHT = 0.1
 SUPPORT_WEIGHT = 1.0  # an unsupported body costs as much as missing every contact part
 DOWNWARD = -0.5  # body vertices whose world normal points this far down can rest on a surface
 UPWARD = 0.7  # scene surfaces whose normal points this far up can carry a body
+# Support is met by the contact parts that can carry a body (a seated body's buttocks,
+# thighs and back, the feet) or by the body's lowest vertices (within LOWEST of its height
+# span: a lying body's side, a kneeling body's shins) resting on a surface, and a quarter
+# of it (LOWEST_SHARE) only by the lowest vertices: hands never carry a body, and a tall
+# person leaning on a table, fitted too small, would otherwise "sit" on it with the feet
+# in the air. More than about a third makes a seated body whose feet were fitted a little
+# high sink until they reach the floor.
+LOWEST = 0.15
+LOWEST_SHARE = 0.25
+CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
+# A scan registered to the camera 1-3 cm and a degree off puts correctly placed soles a
+# few centimetres into the floor: shallower penetration is not counted.
+PENETRATION_MARGIN = 0.02
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
 # adult): 97 scales of the whole mesh were a fifth of a frame's time.
 STRIDE = 3
 
 
+def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> torch.Tensor:
+    """(``count``,) bool: the contact vertices of the parts that can carry a body."""
+    mask = torch.zeros(count, dtype=torch.bool)
+    for part in CARRYING_PARTS:
+        if part in contact_parts:
+            mask[contact_parts[part]] = True
+    return mask
+
+
 @torch.no_grad()
 def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
-               contact_parts: list[torch.Tensor], scene: Scene, use_contact: bool,
-               use_penetration: bool, rho: float, max_angle_deg: float,
+               carrying: torch.Tensor, contact_parts: list[torch.Tensor], scene: Scene,
+               use_contact: bool, use_penetration: bool, rho: float, max_angle_deg: float,
                max_distance: float, use_support: bool = True
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
@@ -47,8 +69,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     vertices inside it plus, with ``use_support``, how far the body's underside is from
     resting on an upward-facing surface, plus a weak prior on body size. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
-    ``contact_parts`` vertex indices per part. Returns (B,) scales and (B,) their costs
-    without the size prior (0: every part touches, nothing enters, the body rests on a
+    ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
+    per part. Returns (B,) scales and (B,) their costs without the size prior (0: every part touches, nothing enters, the body rests on a
     surface): how well the body can meet the scene at all, comparable between bodies fitted
     at different sizes."""
     scales = SCALES[:, None, None]
@@ -60,7 +82,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         scaled = scales * vertices[b, sampled]  # (S, N, 3)
         signed = scene.signed_distance(scaled) if use_penetration or use_support else None
         if use_penetration:
-            depth = torch.relu(-signed)
+            depth = torch.relu(-signed - PENETRATION_MARGIN)
             cost = cost + PENETRATION_WEIGHT * (depth / PENETRATION_SCALE).clamp(max=1.0).mean(1)
         if use_contact and contact_parts:
             misses = []
@@ -71,8 +93,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 misses.append(_miss(dist, near, rho))
             cost = cost + torch.stack(misses).mean(0)
         if use_support:
-            cost = cost + SUPPORT_WEIGHT * _unsupported(scaled, signed, normals[b, sampled],
-                                                        scene, rho)
+            cost = cost + SUPPORT_WEIGHT * _unsupported(
+                scaled, signed, normals[b, sampled], carrying[sampled], scene, rho)
         pick = int((cost + prior).argmin())
         best.append(SCALES[pick])
         lowest.append(cost[pick])
@@ -80,17 +102,28 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
 
 
 def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tensor,
-                 scene: Scene, rho: float) -> torch.Tensor:
-    """(S,) robust gap (0: resting, 1: far) between the downward-facing body vertices of
-    each scaled copy of a body, ``points`` (S, N, 3) camera frame with their signed
-    distances ``signed`` (S, N) and outward ``normals`` (N, 3), and the upward-facing
-    scene surfaces nearest to them."""
+                 carrying: torch.Tensor, scene: Scene, rho: float) -> torch.Tensor:
+    """(S,) robust gap (0: resting, 1: far) between the downward-facing lowest or
+    ``carrying`` (N,) body vertices (LOWEST_SHARE of it: lowest only) of each scaled copy
+    of a body, ``points`` (S, N, 3) camera frame with their signed distances
+    ``signed`` (S, N) and outward ``normals`` (N, 3), and the upward-facing scene
+    surfaces nearest to them."""
+    height = points[0] @ scene.up_in_camera()  # scaling about the camera keeps the order
+    lowest = height - height.min() <= LOWEST * (height.max() - height.min())
     down = scene.world_normals(normals)[:, 2] < DOWNWARD
-    under = points[:, down]
+    return (LOWEST_SHARE * _gap(points, signed, down & lowest, scene, rho)
+            + (1 - LOWEST_SHARE) * _gap(points, signed, down & (lowest | carrying), scene, rho))
+
+
+def _gap(points: torch.Tensor, signed: torch.Tensor, carrying: torch.Tensor, scene: Scene,
+         rho: float) -> torch.Tensor:
+    """(S,) robust gap between the ``carrying`` (N,) body vertices and the upward-facing
+    scene surfaces nearest to them (1 when there are none)."""
+    under = points[:, carrying]
     if under.shape[1] == 0:
         return points.new_ones(points.shape[0])
     carries = scene.sdf_normals(under)[..., 2] > UPWARD
-    return _miss(signed[:, down].abs(), carries, rho)
+    return _miss(signed[:, carrying].abs(), carries, rho)
 
 
 def _miss(distance: torch.Tensor, valid: torch.Tensor, rho: float) -> torch.Tensor:

@@ -221,7 +221,7 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
     """A standing body scaled 1.2x about the camera (same pixels, 20 % too far and too big)
     has its feet through the floor; the search finds the scale that undoes it."""
     from prox_engine.geometry import vertex_normals
-    from prox_engine.scale_search import best_scale
+    from prox_engine.scale_search import best_scale, carrying_vertices
 
     floor = plane_mesh(size=10.0)
     cam2world = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 1.0], [0, 0, 0, 1]])
@@ -236,14 +236,14 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
     far = 1.2 * camera[None]
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand")]
     scale, cost_far = best_scale(far, vertex_normals(far, body.faces), body.scene_vertices,
-                                 parts, scene, True, True, rho=0.05, max_angle_deg=45,
-                                 max_distance=0.15)
+                                 carrying_vertices(body.contact_parts, body.num_vertices), parts, scene, True,
+                                 True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) * 1.2 - 1.0) < 0.03
     # Its cost is that of the body fitted at the right size: the size prior (0.46 at
     # 1 / 1.2) only picks a scale, it does not make one start worse than another.
     _, cost = best_scale(camera[None], vertex_normals(camera[None], body.faces),
-                         body.scene_vertices, parts, scene, True, True, rho=0.05,
-                         max_angle_deg=45, max_distance=0.15)
+                         body.scene_vertices, carrying_vertices(body.contact_parts, body.num_vertices), parts,
+                         scene, True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(cost_far) - float(cost)) < 0.1
 
 
@@ -251,7 +251,7 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     """A correctly placed standing body with a wall 20 cm behind it keeps its scale within
     2 %: moving it back would touch the wall with the back but sink the feet."""
     from prox_engine.geometry import vertex_normals
-    from prox_engine.scale_search import best_scale
+    from prox_engine.scale_search import best_scale, carrying_vertices
 
     with torch.no_grad():
         world = body(body.init_params(1)).vertices[0]  # faces -y, back toward +y
@@ -272,8 +272,8 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     camera = ((world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation)[None]
     parts = [body.contact_parts[p] for p in body.contact_parts]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
-                          parts, scene, True, True, rho=0.05, max_angle_deg=45,
-                          max_distance=0.15)
+                          carrying_vertices(body.contact_parts, body.num_vertices), parts, scene, True, True,
+                          rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) - 1.0) < 0.02
 
 
@@ -287,7 +287,7 @@ def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
     from benchmarks.generate import make_benchmark
     from prox_engine.dataset import Recording, load_cam2world, load_scene_mesh
     from prox_engine.geometry import vertex_normals
-    from prox_engine.scale_search import best_scale
+    from prox_engine.scale_search import best_scale, carrying_vertices
 
     rec = make_benchmark(tmp_path, seed=0, frames=1, kinds=["table"], body=body)[0]
     recording = Recording(tmp_path, rec)
@@ -299,9 +299,44 @@ def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
     truth = np.load(tmp_path / "ground_truth" / rec / f"{meta['frames'][0]}.npz")["vertices"]
     too_close = torch.tensor(truth, dtype=torch.float32)[None] / 1.17
     scale, _ = best_scale(too_close, vertex_normals(too_close, body.faces),
-                          body.scene_vertices, list(body.contact_parts.values()), scene, True,
-                          True, rho=0.05, max_angle_deg=45, max_distance=0.15)
+                          body.scene_vertices, carrying_vertices(body.contact_parts, body.num_vertices),
+                          list(body.contact_parts.values()), scene, True, True, rho=0.05,
+                          max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) / 1.17 - 1.0) < 0.03
+
+
+def test_scale_search_does_not_stand_a_body_on_its_hands(body):
+    """A standing body fitted 15 % too small (too close, floating) whose fingertips happen
+    to rest on two small shelves at that size: hands cannot carry a body, so the search
+    still scales it up until its feet rest on the floor."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.scale_search import best_scale, carrying_vertices
+    from prox_engine.synthetic import look_at
+
+    with torch.no_grad():
+        world = body(body.init_params(1)).vertices[0]
+    world = world - torch.tensor([0.0, 0.0, float(world[:, 2].min())])  # on the floor
+    cam2world = look_at(np.array([0.7, -3.0, 1.6]), np.array([0.0, 0.0, 0.9]))
+    centre = torch.tensor(cam2world[:3, 3], dtype=torch.float32)
+    near = centre + (world - centre) / 1.15  # the same pixels, 15 % too small
+    shelves = []
+    for side in ("left_hand", "right_hand"):
+        hand = near[body.contact_parts[side]]
+        tip = hand[hand[:, 2].argmin()].numpy()
+        shelf = trimesh.creation.box([0.2, 0.2, 0.03])
+        shelf.apply_translation([tip[0], tip[1], tip[2] - 0.015 - 0.003])
+        shelves.append(shelf)
+    room = trimesh.util.concatenate([plane_mesh(size=10.0), *shelves])
+    scene = Scene(room.vertices, room.faces, cam2world,
+                  compute_sdf(room.vertices, room.faces, dim=128, padding=0.5),
+                  sample_spacing=0.02)
+    camera = ((near - centre) @ torch.tensor(cam2world[:3, :3], dtype=torch.float32))[None]
+    parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand",
+                                             "right_hand")]
+    scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
+                          carrying_vertices(body.contact_parts, body.num_vertices), parts, scene, True, True,
+                          rho=0.05, max_angle_deg=45, max_distance=0.15)
+    assert abs(float(scale) / 1.15 - 1.0) < 0.03
 
 
 def test_start_choice_asks_which_start_can_sit_on_the_chair(tmp_path, body):
