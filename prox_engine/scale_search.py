@@ -70,9 +70,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     resting on an upward-facing surface, plus a weak prior on body size. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
-    per part. Returns (B,) scales and (B,) their costs without the size prior (0: every part touches, nothing enters, the body rests on a
-    surface): how well the body can meet the scene at all, comparable between bodies fitted
-    at different sizes."""
+    per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
+    part touches, nothing enters, the body rests on a surface): how well the body can meet
+    the scene at all, comparable between bodies fitted at different sizes."""
     scales = SCALES[:, None, None]
     prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
