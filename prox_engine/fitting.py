@@ -239,7 +239,8 @@ class Fitter:
         if w.get("self_penetration", 0) > 0:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:
-            terms["penetration"] = w["penetration"] * losses.penetration(out, body, self.scene)
+            terms["penetration"] = w["penetration"] * losses.penetration(
+                out, body, self.scene, cfg.penetration_tolerance)
         if w.get("contact", 0) > 0 and self.contact_normals is not None:
             terms["contact"] = w["contact"] * losses.contact(
                 out, self.scene, self.contact_normals, cfg.contact_rho,
@@ -298,7 +299,8 @@ class Fitter:
                                  self.contact_part_ids,
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
-                                 cfg.contact_max_distance, cfg.scale_support)
+                                 cfg.contact_max_distance, cfg.penetration_tolerance,
+                                 cfg.scale_support)
         return scale, cost, vertices
 
     def _depth_scale(self, params: Params, depth: list) -> tuple[torch.Tensor, torch.Tensor]:

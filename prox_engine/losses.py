@@ -26,17 +26,21 @@ def keypoint_data(out: BodyOutput, camera: Camera, target: torch.Tensor,
     return (weight * gmof(squared, rho)).sum(1)
 
 
-def penetration(out: BodyOutput, body: BodyModel, scene: Scene) -> torch.Tensor:
+def penetration(out: BodyOutput, body: BodyModel, scene: Scene,
+                tolerance: float = 0.0) -> torch.Tensor:
     """Penetration energy of the body's scene vertices, (B,)."""
-    return penetration_energy(out.vertices[:, body.scene_vertices], scene)
+    return penetration_energy(out.vertices[:, body.scene_vertices], scene, tolerance)
 
 
-def penetration_energy(points: torch.Tensor, scene: Scene) -> torch.Tensor:
-    """Sum over points (B, N, 3) inside the scene of d^2 (the paper's ||d n||^2) plus |d|
-    (so that shallow penetrations still get a push), d being the signed distance: exact
-    (from the triangles) within two voxels of a surface, where furniture thinner than a
-    voxel would otherwise be missed, else from the grid."""
+def penetration_energy(points: torch.Tensor, scene: Scene,
+                       tolerance: float = 0.0) -> torch.Tensor:
+    """Sum over points (B, N, 3) more than ``tolerance`` inside the scene of d^2 (the
+    paper's ||d n||^2) plus |d| (so that shallow penetrations still get a push), d being
+    the depth beyond the tolerance: exact (from the triangles) within two voxels of a
+    surface, where furniture thinner than a voxel would otherwise be missed, else from the
+    grid."""
     depth = scene.penetration_depth(points, exact_band=2 * scene.sdf.voxel_size)
+    depth = torch.relu(depth - tolerance)
     return (depth ** 2 + depth).sum(-1)
 
 

@@ -104,4 +104,4 @@ def test_sequence_mode_warm_starts(sitting_data, tmp_path):
                                 .read_text()) for f in summary["frames"])
     assert "temporal" in second["losses"] and "temporal" not in first["losses"]
     assert first["phenotype"] == second["phenotype"]  # shape frozen after the first frame
-    assert list(second["timings"]["stages"]) == ["contact"]
+    assert list(second["timings"]["stages"]) == ["final", "contact"]  # keypoints, then scene

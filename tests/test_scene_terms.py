@@ -87,6 +87,20 @@ def test_penetration_gradient_pushes_vertex_out():
     assert penetration_energy(outside, scene).item() == 0
 
 
+def test_penetration_tolerance_lets_a_body_sink_into_a_cushion():
+    """Within the tolerance (a cushion's give, a scan's misregistration) penetration costs
+    nothing and pushes nowhere; beyond it, the excess is pushed out as before."""
+    scene = _scene(plane_mesh())
+    shallow = torch.tensor([[[0.2, 0.1, -0.015]]], requires_grad=True)
+    energy = penetration_energy(shallow, scene, tolerance=0.02)
+    energy.sum().backward()
+    assert energy.item() == 0 and shallow.grad.abs().max() == 0
+    assert penetration_energy(shallow.detach(), scene).item() > 0  # no tolerance: pushed
+    deep = torch.tensor([[[0.2, 0.1, -0.05]]])
+    excess = penetration_energy(deep, scene, tolerance=0.02).item()
+    assert abs(excess - (0.03 ** 2 + 0.03)) < 0.005
+
+
 def test_penetration_inside_a_slab_thinner_than_a_voxel_pushes_out():
     """A 2 cm slab on a 10 cm grid: the grid misses it, the exact band finds the point
     inside and pushes it out through the nearer face; points outside cost nothing."""
