@@ -299,8 +299,7 @@ class Fitter:
                                  self.contact_part_ids,
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
-                                 cfg.contact_max_distance, cfg.penetration_tolerance,
-                                 cfg.scale_support)
+                                 cfg.contact_max_distance, cfg.scale_support)
         return scale, cost, vertices
 
     def _depth_scale(self, params: Params, depth: list) -> tuple[torch.Tensor, torch.Tensor]:

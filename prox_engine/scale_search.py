@@ -44,6 +44,10 @@ CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
 # adult): 97 scales of the whole mesh were a fifth of a frame's time.
 STRIDE = 3
+# A scan registered to the camera 1-3 cm and a degree off, or a soft cushion, puts
+# correctly placed soles a few centimetres into the floor: shallower penetration is not
+# counted.
+PENETRATION_MARGIN = 0.02
 
 
 def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> torch.Tensor:
@@ -59,11 +63,11 @@ def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> tor
 def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
                carrying: torch.Tensor, contact_parts: list[torch.Tensor], scene: Scene,
                use_contact: bool, use_penetration: bool, rho: float, max_angle_deg: float,
-               max_distance: float, tolerance: float = 0.0, use_support: bool = True
+               max_distance: float, use_support: bool = True
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
-    vertices more than ``tolerance`` inside it plus, with ``use_support``, how far the body's underside is from
+    vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far the body's underside is from
     resting on an upward-facing surface, plus a weak prior on body size. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
@@ -79,7 +83,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         scaled = scales * vertices[b, sampled]  # (S, N, 3)
         signed = scene.signed_distance(scaled) if use_penetration or use_support else None
         if use_penetration:
-            depth = torch.relu(-signed - tolerance)
+            depth = torch.relu(-signed - PENETRATION_MARGIN)
             cost = cost + PENETRATION_WEIGHT * (depth / PENETRATION_SCALE).clamp(max=1.0).mean(1)
         if use_contact and contact_parts:
             misses = []
