@@ -67,8 +67,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
-    vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far the body's underside is from
-    resting on an upward-facing surface, plus a weak prior on body size. ``vertices``
+    vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
+    the body's underside is from resting on an upward-facing surface, plus a weak prior
+    on body size. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
@@ -111,20 +112,15 @@ def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tens
     surfaces nearest to them."""
     height = points[0] @ scene.up_in_camera()  # scaling about the camera keeps the order
     lowest = height - height.min() <= LOWEST * (height.max() - height.min())
-    down = scene.world_normals(normals)[:, 2] < DOWNWARD
-    return (LOWEST_SHARE * _gap(points, signed, down & lowest, scene, rho)
-            + (1 - LOWEST_SHARE) * _gap(points, signed, down & (lowest | carrying), scene, rho))
-
-
-def _gap(points: torch.Tensor, signed: torch.Tensor, carrying: torch.Tensor, scene: Scene,
-         rho: float) -> torch.Tensor:
-    """(S,) robust gap between the ``carrying`` (N,) body vertices and the upward-facing
-    scene surfaces nearest to them (1 when there are none)."""
-    under = points[:, carrying]
-    if under.shape[1] == 0:
-        return points.new_ones(points.shape[0])
-    carries = scene.sdf_normals(under)[..., 2] > UPWARD
-    return _miss(signed[:, carrying].abs(), carries, rho)
+    under = (scene.world_normals(normals)[:, 2] < DOWNWARD) & (lowest | carrying)
+    far = points.new_ones(points.shape[0])
+    if not under.any():
+        return far
+    carries = scene.sdf_normals(points[:, under])[..., 2] > UPWARD
+    gap = signed[:, under].abs()
+    low = lowest[under]
+    only_lowest = _miss(gap[:, low], carries[:, low], rho) if low.any() else far
+    return LOWEST_SHARE * only_lowest + (1 - LOWEST_SHARE) * _miss(gap, carries, rho)
 
 
 def _miss(distance: torch.Tensor, valid: torch.Tensor, rho: float) -> torch.Tensor:
