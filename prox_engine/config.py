@@ -57,6 +57,12 @@ class FitConfig:
     # Prior weights (pose, shape, bending, hands) enter the loss squared, as SMPLify-X and
     # PROX write theirs (so their stage values can be copied as they are).
     squared_priors: bool = False
+    # Whether the scene stages may translate the body. Off, they turn and bend it where it
+    # stands: the scale search (or the previous frame) placed it along its camera rays, and
+    # the penetration term would otherwise shift the whole body off its keypoints, by 2-9
+    # cm, to escape a floor or seat scanned a few centimetres off (tuning seeds 0, 8 and 9,
+    # PJE: 101 -> 91, 126 -> 112 and 127 -> 108 mm; `prox-scene-translates` is the ablation).
+    scene_stages_translate: bool = False
     # Depth (m) a body may sink into the scan before the penetration term pushes it out:
     # cushions and mattresses give 2-4 cm under a person, and a scan registered a
     # centimetre or two off puts a correctly placed body that deep. Off by default (the

@@ -159,7 +159,8 @@ class Fitter:
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
             t0, before = time.perf_counter(), self.evaluations
-            free = ["transl", "global_orient", *self.body.pose_group()]
+            moves = self.config.scene_stages_translate or not self._scene_stage(stage)
+            free = [*(["transl"] if moves else []), "global_orient", *self.body.pose_group()]
             if stage.optimize_shape and not frozen_shape:
                 free += self.body.shape_group()
             if stage.optimize_hands and has_hands:
