@@ -82,6 +82,8 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
         stats, _ = metrics.scene_stats(torch.as_tensor(fit, dtype=torch.float32), body, scene)
         swapped = truth.get("frame_errors", {}).get(name, {}).get("swapped", [])
         rows.append({"frame": name, "seconds": frame["seconds"],
+                     # the fit's own statistic: inside the scan as the fitter read it
+                     "penetrating_share_as_given": frame["penetrating_share"],
                      "sides_right": set(frame.get("sides_swapped", [])) == set(swapped),
                      **frame_metrics(fit, gt.astype(np.float64), body, stats, gt_contact)})
     return rows
@@ -97,7 +99,8 @@ def aggregate(rows: list[dict]) -> dict:
     return {
         "frames": len(rows),
         **{k: mean(k) for k in ("pje", "v2v", "p_pje", "p_v2v", "penetrating_share",
-                                "penetration_mean_depth_m", "seconds")},
+                                "penetration_mean_depth_m", "penetrating_share_as_given",
+                                "seconds")},
         "contact_recovered": sum(r["contacts_recovered"] for r in rows) / gt if gt else None,
         "sides_right": mean("sides_right"),  # frames whose left/right labelling the fit got
     }
