@@ -393,7 +393,8 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
     world2cam = torch.tensor(np.linalg.inv(cam2world), dtype=torch.float32)
     params["global_orient"] = matrix_to_axis_angle(
         world2cam[:3, :3] @ axis_angle_to_matrix(params["global_orient"]))
-    params["transl"] = (world2cam[:3, :3] @ shift + world2cam[:3, 3])[None]  # root at 0
+    # anny rotates about its origin, so the world shift maps to a camera-frame translation
+    params["transl"] = (world2cam[:3, :3] @ shift + world2cam[:3, 3])[None]
     with torch.no_grad():
         truth = body(params).keypoints[0, :25]
 
