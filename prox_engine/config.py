@@ -39,6 +39,10 @@ class FitConfig:
     swap_sides: bool = True  # consider OpenPose exchanging left and right legs or arms
     scale_search: bool = True  # resolve depth against the scene before the scene stages
     scale_support: bool = True  # the scale search asks that the body rest on a surface
+    # Sequence mode searches each frame's scale too, before its contact stage; without it
+    # a frame keeps the depth its keypoint stage reaches from the previous frame's (seeds 9
+    # and 12, tuning: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm; `prox-carried-depth`).
+    sequence_scale_search: bool = True
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.

@@ -141,7 +141,8 @@ class Fitter:
             order = side_swap(label)
             rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]
         final: dict[str, torch.Tensor] = {}
-        rescaled = warm_start is not None or not self.config.scale_search
+        rescaled = not self.config.scale_search or (
+            warm_start is not None and not self.config.sequence_scale_search)
         placed = warm_start is not None  # at the depth cloud's distance
         for index, stage in enumerate(stages):
             self._announce(stage.name)

@@ -369,19 +369,11 @@ def test_arm_restarts_bring_an_arm_seen_end_on_forward(body):
     assert float(error.max()) < 0.06, error
 
 
-def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(body):
-    """A standing body fitted exactly, under a tilted camera, whose scanned floor is
-    registered 2 cm too high: the scene stages keep it where it stands (the scale search
-    or the previous frame placed it along its camera rays) and bend it out of the scan.
-    Left free to translate it, the penetration term shifts the whole body 3-4 cm off its
-    keypoints, and its joints end further from the truth."""
+def _standing_params(body, cam2world: np.ndarray) -> dict[str, torch.Tensor]:
+    """Camera-frame parameters of a mean standing body on the floor at the camera's target,
+    facing the camera."""
     from prox_engine.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 
-    cam2world = tilted_camera()
-    floor = plane_mesh(size=8.0, z=0.02)
-    scene = Scene(floor.vertices, floor.faces, cam2world,
-                  compute_sdf(floor.vertices, floor.faces, dim=64, padding=0.5),
-                  sample_spacing=0.1)
     params = body.init_params(1)
     to_camera = cam2world[:2, 3] - np.array([0.2, 0.3])
     params["global_orient"][0] = torch.tensor([0.0, 0.0, math.atan2(to_camera[0],
@@ -395,12 +387,28 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
         world2cam[:3, :3] @ axis_angle_to_matrix(params["global_orient"]))
     # anny rotates about its origin, so the world shift maps to a camera-frame translation
     params["transl"] = (world2cam[:3, :3] @ shift + world2cam[:3, 3])[None]
+    return params
+
+
+def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(body):
+    """A standing body fitted exactly, under a tilted camera, whose scanned floor is
+    registered 2 cm too high: the scene stages keep it where it stands (the scale search
+    or the previous frame placed it along its camera rays) and bend it out of the scan.
+    Left free to translate it, the penetration term shifts the whole body 3-4 cm off its
+    keypoints, and its joints end further from the truth."""
+    cam2world = tilted_camera()
+    floor = plane_mesh(size=8.0, z=0.02)
+    scene = Scene(floor.vertices, floor.faces, cam2world,
+                  compute_sdf(floor.vertices, floor.faces, dim=64, padding=0.5),
+                  sample_spacing=0.1)
+    params = _standing_params(body, cam2world)
     with torch.no_grad():
         truth = body(params).keypoints[0, :25]
 
     def fit(translate: bool) -> tuple[float, float]:
         config = load_config("prox")
         config.scene_stages_translate = translate
+        config.sequence_scale_search = False  # the stages alone, from the true depth
         result = Fitter(body, CAMERA, config, scene).fit([frame_of(truth)],
                                                          warm_start=params)[0]
         moved = float((result.params["transl"] - params["transl"]).norm())
@@ -410,3 +418,27 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
     moved_free, error_free = fit(translate=True)
     assert moved < 0.005 and moved_free > 0.02, (moved, moved_free)
     assert error < error_free and error < 0.045, (error, error_free)
+
+
+def test_sequence_mode_searches_each_frames_scale(body):
+    """Sequence mode, warm-started from a previous fit 15 % too big and too far (the same
+    pixels, its soles through the floor): each frame's scale search brings the body back
+    onto the floor; carrying the depth over from the previous frame leaves it there."""
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    params = _standing_params(body, cam2world)
+    with torch.no_grad():
+        out = body(params)
+    truth = out.keypoints[0, :25]
+    config = load_config("prox")
+    too_far = {k: v.clone() for k, v in params.items()}
+    Fitter(body, CAMERA, config, scene)._rescale(too_far, torch.tensor([1.15]), out.vertices)
+
+    def error(search: bool) -> float:
+        config.sequence_scale_search = search
+        result = Fitter(body, CAMERA, config, scene).fit([frame_of(truth)],
+                                                         warm_start=too_far)[0]
+        return float((result.keypoints[:25] - truth).norm(dim=1).mean())
+
+    searched, carried = error(True), error(False)
+    assert searched < 0.08 and carried > 0.2, (searched, carried)
