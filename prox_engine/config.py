@@ -39,10 +39,12 @@ class FitConfig:
     swap_sides: bool = True  # consider OpenPose exchanging left and right legs or arms
     scale_search: bool = True  # resolve depth against the scene before the scene stages
     scale_support: bool = True  # the scale search asks that the body rest on a surface
-    # Sequence mode searches each frame's scale too, before its contact stage; without it
-    # a frame keeps the depth its keypoint stage reaches from the previous frame's (seeds 9
-    # and 12, tuning: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm; `prox-carried-depth`).
-    sequence_scale_search: bool = True
+    # Sequence mode keeps the first frame's shape, so each later frame's depth is the one its
+    # keypoint stage reaches from the previous frame's. On, each frame's scale is searched
+    # against the scene too, before its contact stage, which rescales the body: closer joints
+    # (seeds 9 and 12, tuning: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm), but a size that
+    # changes from frame to frame (`prox-rescaled`).
+    sequence_scale_search: bool = False
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.
@@ -62,10 +64,11 @@ class FitConfig:
     # PROX write theirs (so their stage values can be copied as they are).
     squared_priors: bool = False
     # Whether the scene stages may translate the body. Off, they turn and bend it where it
-    # stands: the scale search (or the previous frame) placed it along its camera rays, and
-    # the penetration term would otherwise shift the whole body off its keypoints, by 2-9
-    # cm, to escape a floor or seat scanned a few centimetres off (tuning seeds 0, 8 and 9,
-    # PJE: 101 -> 91, 126 -> 112 and 127 -> 108 mm; `prox-scene-translates` is the ablation).
+    # stands: the scale search (in sequence mode, the keypoint stage) placed it along its
+    # camera rays, and the penetration term would otherwise shift the whole body off its
+    # keypoints, by 2-9 cm, to escape a floor or seat scanned a few centimetres off (tuning
+    # seeds 0, 8 and 9, PJE: 101 -> 91, 126 -> 112 and 127 -> 108 mm;
+    # `prox-scene-translates` is the ablation).
     scene_stages_translate: bool = False
     # Depth (m) a body may sink into the scan before the penetration term pushes it out:
     # cushions and mattresses give 2-4 cm under a person, and a scan registered a

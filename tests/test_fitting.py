@@ -408,7 +408,6 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
     def fit(translate: bool) -> tuple[float, float]:
         config = load_config("prox")
         config.scene_stages_translate = translate
-        config.sequence_scale_search = False  # the stages alone, from the true depth
         result = Fitter(body, CAMERA, config, scene).fit([frame_of(truth)],
                                                          warm_start=params)[0]
         moved = float((result.params["transl"] - params["transl"]).norm())
@@ -420,10 +419,11 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
     assert error < error_free and error < 0.045, (error, error_free)
 
 
-def test_sequence_mode_searches_each_frames_scale(body):
+def test_sequence_mode_can_search_each_frames_scale(body):
     """Sequence mode, warm-started from a previous fit 15 % too big and too far (the same
-    pixels, its soles through the floor): each frame's scale search brings the body back
-    onto the floor; carrying the depth over from the previous frame leaves it there."""
+    pixels, its soles through the floor): with ``sequence_scale_search`` each frame's scale
+    search brings the body back onto the floor; by default, with the shape kept, the depth
+    carried over from the previous frame stays."""
     cam2world = tilted_camera()
     scene = floor_scene(cam2world)
     params = _standing_params(body, cam2world)
