@@ -42,8 +42,8 @@ class FitConfig:
     # Sequence mode keeps the first frame's shape, so each later frame's depth is the one its
     # keypoint stage reaches from the previous frame's. On, each frame's scale is searched
     # against the scene too, before its contact stage, which rescales the body: closer joints
-    # (seeds 9 and 12, tuning: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm), but a size that
-    # changes from frame to frame (`prox-rescaled`).
+    # (tuning seeds 9 and 12: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm; held-out seed 13:
+    # 200.0 -> 153.7), but a size that changes from frame to frame (`prox-rescaled`).
     sequence_scale_search: bool = False
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
