@@ -78,6 +78,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     scales = SCALES[:, None, None]
     prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
+    carrying = carrying[sampled]
     best, lowest = [], []
     for b in range(vertices.shape[0]):
         cost = torch.zeros_like(prior)
@@ -96,7 +97,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
             cost = cost + torch.stack(misses).mean(0)
         if use_support:
             cost = cost + SUPPORT_WEIGHT * _unsupported(
-                scaled, signed, normals[b, sampled], carrying[sampled], scene, rho)
+                scaled, signed, normals[b, sampled], carrying, scene, rho)
         pick = int((cost + prior).argmin())
         best.append(SCALES[pick])
         lowest.append(cost[pick])

@@ -11,6 +11,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from prox_engine import scene_sdf
+from prox_engine.body.base import BodyOutput
 from prox_engine.camera import Camera
 from prox_engine.config import FitConfig, Stage, load_config
 from prox_engine.fitting import Fitter, Frame
@@ -52,11 +53,10 @@ def frame_of(keypoints_cam: torch.Tensor, camera: Camera = CAMERA) -> Frame:
     return Frame("f", Keypoints(data, has_hands=False, has_face=False))
 
 
-def standing_person(body, cam2world: np.ndarray, yaw: float = 0.0
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """World vertices and camera-frame BODY_25 keypoints of a mean standing body on the
-    floor at the camera's target, facing the camera turned by ``yaw``."""
-    params = body.init_params(1)
+def _placed(body, params: dict[str, torch.Tensor], cam2world: np.ndarray, yaw: float = 0.0
+            ) -> tuple[BodyOutput, torch.Tensor]:
+    """Turn ``params`` (in place) to face the camera, turned by ``yaw``; the posed body and
+    the world shift that stands it on the floor at the camera's target."""
     to_camera = cam2world[:2, 3] - np.array([0.2, 0.3])
     heading = math.atan2(to_camera[0], -to_camera[1]) + yaw  # the body faces -y at 0
     params["global_orient"][0] = torch.tensor([0.0, 0.0, heading])
@@ -64,6 +64,14 @@ def standing_person(body, cam2world: np.ndarray, yaw: float = 0.0
         out = body(params)
     shift = torch.tensor([0.2, 0.3, 0.0]) - torch.tensor(
         [*out.vertices[0, :, :2].mean(0), out.vertices[0, :, 2].min()])
+    return out, shift
+
+
+def standing_person(body, cam2world: np.ndarray, yaw: float = 0.0
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """World vertices and camera-frame BODY_25 keypoints of a mean standing body on the
+    floor at the camera's target, facing the camera turned by ``yaw``."""
+    out, shift = _placed(body, body.init_params(1), cam2world, yaw)
     return out.vertices[0] + shift, world_to_camera(out.keypoints[0] + shift, cam2world)
 
 
@@ -336,18 +344,12 @@ def _arms_forward_person(body, cam2world: np.ndarray, flexion: float, elbow: flo
     from prox_engine.body.anny_body import BODY_BONES
 
     params = body.init_params(1)
-    to_camera = cam2world[:2, 3] - np.array([0.2, 0.3])
-    params["global_orient"][0] = torch.tensor(
-        [0.0, 0.0, math.atan2(to_camera[0], -to_camera[1]) + yaw])
     for side in ("L", "R"):
         params["body_pose"][0, BODY_BONES.index(f"upperarm01.{side}")] = torch.tensor(
             [flexion, 0.0, 0.0])
         params["body_pose"][0, BODY_BONES.index(f"lowerarm01.{side}")] = torch.tensor(
             [elbow, 0.0, 0.0])
-    with torch.no_grad():
-        out = body(params)
-    shift = torch.tensor([0.2, 0.3, 0.0]) - torch.tensor(
-        [*out.vertices[0, :, :2].mean(0), out.vertices[0, :, 2].min()])
+    out, shift = _placed(body, params, cam2world, yaw)
     return world_to_camera(out.keypoints[0] + shift, cam2world)
 
 
@@ -375,13 +377,7 @@ def _standing_params(body, cam2world: np.ndarray) -> dict[str, torch.Tensor]:
     from prox_engine.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 
     params = body.init_params(1)
-    to_camera = cam2world[:2, 3] - np.array([0.2, 0.3])
-    params["global_orient"][0] = torch.tensor([0.0, 0.0, math.atan2(to_camera[0],
-                                                                    -to_camera[1])])
-    with torch.no_grad():
-        rest = body(params).vertices[0]
-    shift = torch.tensor([0.2, 0.3, 0.0]) - torch.tensor([*rest[:, :2].mean(0),
-                                                          rest[:, 2].min()])
+    _, shift = _placed(body, params, cam2world)
     world2cam = torch.tensor(np.linalg.inv(cam2world), dtype=torch.float32)
     params["global_orient"] = matrix_to_axis_angle(
         world2cam[:3, :3] @ axis_angle_to_matrix(params["global_orient"]))

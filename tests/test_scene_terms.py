@@ -15,6 +15,12 @@ from prox_engine.scene_sdf import SignedDistanceField, cached_sdf, compute_sdf
 from .conftest import closed_box, plane_mesh
 
 
+def _carrying(body) -> torch.Tensor:
+    from prox_engine.scale_search import carrying_vertices
+
+    return carrying_vertices(body.contact_parts, body.num_vertices)
+
+
 def _scene(mesh, dim=64) -> Scene:
     sdf = compute_sdf(mesh.vertices, mesh.faces, dim=dim, padding=0.5)
     return Scene(mesh.vertices, mesh.faces, np.eye(4), sdf, sample_spacing=0.05)
@@ -235,7 +241,7 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
     """A standing body scaled 1.2x about the camera (same pixels, 20 % too far and too big)
     has its feet through the floor; the search finds the scale that undoes it."""
     from prox_engine.geometry import vertex_normals
-    from prox_engine.scale_search import best_scale, carrying_vertices
+    from prox_engine.scale_search import best_scale
 
     floor = plane_mesh(size=10.0)
     cam2world = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 1.0], [0, 0, 0, 1]])
@@ -250,13 +256,13 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
     far = 1.2 * camera[None]
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand")]
     scale, cost_far = best_scale(far, vertex_normals(far, body.faces), body.scene_vertices,
-                                 carrying_vertices(body.contact_parts, body.num_vertices), parts, scene, True,
+                                 _carrying(body), parts, scene, True,
                                  True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) * 1.2 - 1.0) < 0.03
     # Its cost is that of the body fitted at the right size: the size prior (0.46 at
     # 1 / 1.2) only picks a scale, it does not make one start worse than another.
     _, cost = best_scale(camera[None], vertex_normals(camera[None], body.faces),
-                         body.scene_vertices, carrying_vertices(body.contact_parts, body.num_vertices), parts,
+                         body.scene_vertices, _carrying(body), parts,
                          scene, True, True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(cost_far) - float(cost)) < 0.1
 
@@ -265,7 +271,7 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     """A correctly placed standing body with a wall 20 cm behind it keeps its scale within
     2 %: moving it back would touch the wall with the back but sink the feet."""
     from prox_engine.geometry import vertex_normals
-    from prox_engine.scale_search import best_scale, carrying_vertices
+    from prox_engine.scale_search import best_scale
 
     with torch.no_grad():
         world = body(body.init_params(1)).vertices[0]  # faces -y, back toward +y
@@ -286,7 +292,7 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     camera = ((world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation)[None]
     parts = [body.contact_parts[p] for p in body.contact_parts]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
-                          carrying_vertices(body.contact_parts, body.num_vertices), parts, scene, True, True,
+                          _carrying(body), parts, scene, True, True,
                           rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) - 1.0) < 0.02
 
@@ -301,7 +307,7 @@ def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
     from benchmarks.generate import make_benchmark
     from prox_engine.dataset import Recording, load_cam2world, load_scene_mesh
     from prox_engine.geometry import vertex_normals
-    from prox_engine.scale_search import best_scale, carrying_vertices
+    from prox_engine.scale_search import best_scale
 
     rec = make_benchmark(tmp_path, seed=0, frames=1, kinds=["table"], body=body)[0]
     recording = Recording(tmp_path, rec)
@@ -313,7 +319,7 @@ def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
     truth = np.load(tmp_path / "ground_truth" / rec / f"{meta['frames'][0]}.npz")["vertices"]
     too_close = torch.tensor(truth, dtype=torch.float32)[None] / 1.17
     scale, _ = best_scale(too_close, vertex_normals(too_close, body.faces),
-                          body.scene_vertices, carrying_vertices(body.contact_parts, body.num_vertices),
+                          body.scene_vertices, _carrying(body),
                           list(body.contact_parts.values()), scene, True, True, rho=0.05,
                           max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) / 1.17 - 1.0) < 0.03
@@ -324,7 +330,7 @@ def test_scale_search_does_not_stand_a_body_on_its_hands(body):
     to rest on two small shelves at that size: hands cannot carry a body, so the search
     still scales it up until its feet rest on the floor."""
     from prox_engine.geometry import vertex_normals
-    from prox_engine.scale_search import best_scale, carrying_vertices
+    from prox_engine.scale_search import best_scale
     from prox_engine.synthetic import look_at
 
     with torch.no_grad():
@@ -348,7 +354,7 @@ def test_scale_search_does_not_stand_a_body_on_its_hands(body):
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand",
                                              "right_hand")]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
-                          carrying_vertices(body.contact_parts, body.num_vertices), parts, scene, True, True,
+                          _carrying(body), parts, scene, True, True,
                           rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) / 1.15 - 1.0) < 0.03
 
