@@ -39,6 +39,10 @@ SWAP_COST = 500.0  # on the tuning seed: 41 of 42 frames labelled right, no fals
 # candidate may lean 30 degrees for about 200 px^2, but not turn from lying to upright.
 TILT_WEIGHT = 1e4
 DISTINCT_TURN = math.radians(45)  # starts kept side by side differ at least this much
+# A detector finds the nose and eyes confidently only in a face it sees (seen from behind
+# OpenPose reports them faintly or not at all): above this mean confidence the person is
+# taken to face the camera, and a start turned away costs up to FACING_COST (as many px^2).
+FACE, FACE_SEEN, FACING_COST = [0, 15, 16], 0.5, 5000.0
 
 
 @dataclass
@@ -171,10 +175,12 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
                 events.append("initialise: non-finite values in the rigid fit, undone")
     with torch.no_grad():
         score = data(rotated() + transl[:, None], flat_seen ** 2, SCORE_RHO).view(batch, count)
+        rotation = axis_angle_to_matrix(turn) @ rot0
+        score = score + FACING_COST * _turned_away(rotation @ body.forward_axis(), transl,
+                                                   conf).view(batch, count)
         score = torch.nan_to_num(score, nan=math.inf).view(frames, views, count)
         score[:, 1:] += SWAP_COST  # a detector swaps sides in a minority of frames
         score = score.flatten(1)  # over labellings and candidates
-        rotation = axis_angle_to_matrix(turn) @ rot0
         chosen, starts = [], []
         for b in range(frames):
             rows = rotation.view(frames, -1, 3, 3)[b]
@@ -216,6 +222,16 @@ def _turn(a: torch.Tensor, b: torch.Tensor) -> float:
     """Angle (rad) of the rotation taking ``a`` to ``b``."""
     cos = ((a.T @ b).trace() - 1) / 2
     return math.acos(max(-1.0, min(1.0, float(cos))))
+
+
+def _turned_away(forward: torch.Tensor, position: torch.Tensor, conf: torch.Tensor
+                 ) -> torch.Tensor:
+    """(B * C,) how far each candidate (``forward`` (B * C, 3) its facing, ``position`` a
+    point of it, camera coordinates) turns its back to the camera, 0 (facing it or side on)
+    to 1 (straight away), in the frames (``conf`` (B, K)) where the face is seen; else 0."""
+    seen = (conf[:, FACE].mean(1) > FACE_SEEN).float()  # (B,)
+    away = (forward * torch.nn.functional.normalize(position, dim=1)).sum(1).clamp_min(0)
+    return away * seen.repeat_interleave(len(forward) // len(conf))
 
 
 def _centre_weights(seen: torch.Tensor, events: list[str] | None) -> torch.Tensor:

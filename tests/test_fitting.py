@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -139,6 +140,37 @@ def test_initialisation_with_only_neck_and_hips(body):
     with torch.no_grad():
         hips = CAMERA.project(body(params).keypoints[0, [9, 12]]).mean(0)
     assert float((hips - torch.tensor(frame.keypoints.data[[9, 12], :2]).mean(0)).norm()) < 40
+
+
+def test_starts_face_the_camera_when_the_detector_sees_the_face(body):
+    """Benchmark seed 13's seated reacher (hips hidden by the table; nose and eyes seen):
+    both starts kept face the camera. Without the face cue the second was the body turned
+    away with its sides swapped, which then won the fit (146 degrees off). Seen faintly,
+    as OpenPose sees a face from behind, the nose and eyes do not rule it out."""
+    from prox_engine.geometry import axis_angle_to_matrix
+    from prox_engine.initialisation import best_start
+    from prox_engine.keypoints import LABELLINGS, side_swap
+
+    data = json.loads((Path(__file__).parent / "data" / "reacher_facing_camera.json")
+                      .read_text())
+    camera = Camera(**data["camera"])
+    keypoints = torch.zeros(1, N_KEYPOINTS, 3)
+    keypoints[0, :25] = torch.tensor(data["body_keypoints"])
+    up = torch.tensor(data["up_in_camera"])
+    config = load_config("prox")
+
+    def facing_camera(conf: torch.Tensor) -> list[bool]:
+        params, _ = best_start(body, camera, keypoints[..., :2], conf, up, config.data_rho,
+                               config.init_depth_weight,
+                               [side_swap(label) for label in LABELLINGS], keep=2)
+        forward = axis_angle_to_matrix(params["global_orient"]) @ body.forward_axis()
+        return [float(f @ -t) > 0 for f, t in zip(forward, params["transl"])]  # toward it
+
+    conf = keypoints[..., 2] * body.keypoint_mask
+    assert facing_camera(conf) == [True, True]
+    faint = conf.clone()
+    faint[0, [0, 15, 16]] *= 0.5
+    assert not all(facing_camera(faint))
 
 
 def test_several_starts_per_frame_are_distinct_best_first(body):
