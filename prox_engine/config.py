@@ -45,6 +45,11 @@ class FitConfig:
     # (tuning seeds 9 and 12: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm; held-out seed 13:
     # 200.0 -> 153.7), but a size that changes from frame to frame (`prox-rescaled`).
     sequence_scale_search: bool = False
+    # Sequence mode fits one anchor frame from scratch and the others from their
+    # neighbours, so all inherit its shape and depth: the first frame whose body keypoints'
+    # summed confidence is this share of the best frame's (noise moves the sums by a few
+    # per cent; a truncated, occluded or blurred frame loses 20-40). 0: the first frame.
+    anchor_seen: float = 0.9
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.
@@ -53,6 +58,10 @@ class FitConfig:
     # With a scale search, the starts are compared by objective + this weight times the
     # search's cost (how badly the body meets the scene at its best scale, 0-2).
     start_scene_weight: float = 0.0
+    # Where the detector sees the nose and eyes, a start turned away from the camera costs
+    # up to this (px^2): the turned-away body with its sides swapped explains the same
+    # keypoints, and without the face nothing tells the two apart.
+    facing_cost: float = 5000.0
     # After the start choice, each frame's arms are also restarted held forward (one or
     # both), fitted side by side through the next stage, and the lowest objective is kept:
     # an arm seen from the front projects alike pointing forward or back.

@@ -381,7 +381,8 @@ class Fitter:
         params, chosen = best_start(self.body, self.camera, target, conf, up,
                                     self.config.data_rho, self.config.init_depth_weight,
                                     [side_swap(label) for label in labellings],
-                                    events=self.events, keep=self.config.start_candidates)
+                                    events=self.events, keep=self.config.start_candidates,
+                                    facing_cost=self.config.facing_cost)
         return params, [labellings[int(c)] for c in chosen]
 
     def _closest_labelling(self, target: torch.Tensor, conf: torch.Tensor,

@@ -41,8 +41,8 @@ TILT_WEIGHT = 1e4
 DISTINCT_TURN = math.radians(45)  # starts kept side by side differ at least this much
 # A detector finds the nose and eyes confidently only in a face it sees (seen from behind
 # OpenPose reports them faintly or not at all): above this mean confidence the person is
-# taken to face the camera, and a start turned away costs up to FACING_COST (as many px^2).
-FACE, FACE_SEEN, FACING_COST = [0, 15, 16], 0.5, 5000.0
+# taken to face the camera (best_start's ``facing_cost``).
+FACE, FACE_SEEN = [0, 15, 16], 0.5
 
 
 @dataclass
@@ -91,13 +91,15 @@ def candidates(body: BodyModel, up: torch.Tensor) -> Candidates:
 def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torch.Tensor,
                up: torch.Tensor, rho: float, depth_weight: float,
                labellings: Sequence[list[int]] = (), max_iter: int = 30,
-               events: list[str] | None = None, keep: int = 1
+               events: list[str] | None = None, keep: int = 1, facing_cost: float = 0.0
                ) -> tuple[Params, torch.Tensor]:
     """Parameters of the ``keep`` best distinct rigidly fitted candidates of each frame
     (B * keep rows, frame-major, best first; see :func:`_distinct`), and which of
     ``labellings`` (row orders of the keypoints, e.g. with the legs' sides exchanged; none:
     the keypoints as given) each explains the keypoints under, (B * keep,). ``target``
-    (B, K, 2) pixels and ``conf`` (B, K) the detector's confidences."""
+    (B, K, 2) pixels and ``conf`` (B, K) the detector's confidences. Where the detector
+    sees the face, a start turned away from the camera costs up to ``facing_cost`` (as
+    many px^2 of reprojection error)."""
     orders = list(labellings) or [list(range(target.shape[1]))]
     frames, views = target.shape[0], len(orders)
     # Every frame under every labelling: (B, L) flattened to B * L "frames" below.
@@ -176,7 +178,7 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     with torch.no_grad():
         score = data(rotated() + transl[:, None], flat_seen ** 2, SCORE_RHO).view(batch, count)
         rotation = axis_angle_to_matrix(turn) @ rot0
-        score = score + FACING_COST * _turned_away(rotation @ body.forward_axis(), transl,
+        score = score + facing_cost * _turned_away(rotation @ body.forward_axis(), transl,
                                                    conf).view(batch, count)
         score = torch.nan_to_num(score, nan=math.inf).view(frames, views, count)
         score[:, 1:] += SWAP_COST  # a detector swaps sides in a minority of frames

@@ -24,6 +24,10 @@ from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, writ
 from .scene import Scene
 
 Progress = Callable[[int, int, str], None]
+# Sequence mode refits a frame from scratch when its neighbour's fit ends this many times
+# further from the keypoints than the anchor's, and this many pixels (quality.py flags a
+# frame at 3 times the recording's median and 10 px).
+REFIT_RATIO, REFIT_MIN_PX = 3.0, 10.0
 
 
 @dataclass
@@ -66,38 +70,85 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
 
     failures: list[tuple[str, str]] = []
     frames_summary: list[dict] = []
-    previous: FitResult | None = None
     batch = 1 if sequence else max(1, config.batch_size)
     done = 0
-    for start in range(0, len(names), batch):
-        frames = []
-        for name in names[start:start + batch]:
-            try:
-                frames.append(_load_frame(rec, name, camera, config, depth_camera))
-            except InputError as exc:
-                failures.append((name, str(exc)))
-                previous = None  # do not warm-start across a gap
-        if frames:
-            warm = previous.params if (sequence and previous is not None) else None
-            prev_kp = previous.keypoints[None] if warm is not None else None
-            try:
-                results = fitter.fit(frames, warm_start=warm, previous_keypoints=prev_kp)
-            except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
-                failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
-                results = []
-            for frame, result in zip(frames, results):
-                frames_summary.append(_write_frame(out, recording, frame, result, body,
-                                                   camera, scene, config, sequence))
-            previous = results[-1] if results else None
-        done = min(start + batch, len(names))
-        if progress:
-            progress(done, len(names), names[done - 1])
+    anchor: FitResult | None = None
+    anchor_px = 0.0  # the anchor's reprojection error
+    for chain in (_chains(rec, names, config.anchor_seen) if sequence else [names]):
+        previous = anchor  # a backward chain starts from the anchor frame's fit
+        for start in range(0, len(chain), batch):
+            frames = []
+            for name in chain[start:start + batch]:
+                try:
+                    frames.append(_load_frame(rec, name, camera, config, depth_camera))
+                except InputError as exc:
+                    failures.append((name, str(exc)))
+                    previous = None  # do not warm-start across a gap
+            if frames:
+                try:
+                    results = (_fit_from(fitter, frames[0], previous, anchor_px)
+                               if sequence and previous is not None else fitter.fit(frames))
+                except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
+                    failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
+                    results = []
+                for frame, result in zip(frames, results):
+                    frames_summary.append(_write_frame(out, recording, frame, result, body,
+                                                       camera, scene, config, sequence))
+                previous = results[-1] if results else None
+                if anchor is None and start == 0 and previous is not None:
+                    anchor, anchor_px = previous, _error_px(fitter, previous, frames[0])
+            done += len(chain[start:start + batch])
+            if progress:
+                progress(done, len(names), chain[min(start + batch, len(chain)) - 1])
 
+    order = {name: i for i, name in enumerate(names)}
+    frames_summary.sort(key=lambda f: order[f["frame"]])
     quality.recording_flags(frames_summary, frame_times([f["frame"] for f in frames_summary]))
     summary = _summarise(recording, source or str(Path(base).absolute()), config, sequence,
                          frames_summary, failures, scene_seconds)
     write_json(Path(out) / recording / "summary.json", summary)
     return RecordingResult(recording, summary, failures)
+
+
+def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: float
+              ) -> list[FitResult]:
+    """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``). Where that
+    lost the keypoints (a reprojection error over REFIT_RATIO times the anchor's and over
+    REFIT_MIN_PX), the frame is also fitted from scratch, and the fit nearer its keypoints
+    is kept: the sequence goes on from it, with its own shape."""
+    results = fitter.fit([frame], warm_start=previous.params,
+                         previous_keypoints=previous.keypoints[None])
+    error = _error_px(fitter, results[0], frame)
+    if error > max(REFIT_RATIO * anchor_px, REFIT_MIN_PX):
+        fresh = fitter.fit([frame])
+        if _error_px(fitter, fresh[0], frame) < error:
+            fresh[0].events.append(f"sequence: refitted from scratch, {error:.0f} px off "
+                                   f"from its neighbour's fit ({anchor_px:.0f} for the anchor)")
+            return fresh
+    return results
+
+
+def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
+    return metrics.reprojection_error(result.keypoints, frame.keypoints, fitter.camera,
+                                      fitter.body.keypoint_mask)
+
+
+def _chains(rec: Recording, names: list[str], anchor_seen: float) -> list[list[str]]:
+    """Sequence mode's order: from the anchor frame forward to the last, then backward
+    from the frame before it to the first. The anchor, whose body shape and placement
+    every other frame inherits, is the first frame whose body keypoints' summed
+    confidence is at least ``anchor_seen`` times the best frame's (FitConfig)."""
+    seen = [_seen(rec, name) for name in names]
+    anchor = next(i for i, s in enumerate(seen) if s >= anchor_seen * max(seen))
+    return [names[anchor:], names[:anchor][::-1]]
+
+
+def _seen(rec: Recording, name: str) -> float:
+    """Summed detector confidence of a frame's body keypoints (0 for an unreadable file)."""
+    try:
+        return float(load_keypoints(rec.keypoint_path(name)).data[BODY, 2].sum())
+    except InputError:
+        return 0.0
 
 
 def load_scene(rec: Recording, sdf_dim: int) -> Scene:

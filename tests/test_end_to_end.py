@@ -94,14 +94,50 @@ def test_every_frame_failing_is_a_failed_run(sitting_data, tmp_path):
     assert f"{REC}: no frame could be fitted" in run.stderr
 
 
-def test_sequence_mode_warm_starts(sitting_data, tmp_path):
-    run = cli_fit(sitting_data, tmp_path / "seq", coarse_config(tmp_path, "prox"),
-                  "--sequence", "--frames", "2")
+def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
+    """The first frame is cut off below the knees: sequence mode fits the second frame,
+    the one the detector saw best, from scratch, then the first warm-started from it
+    (shape kept, the temporal term on); the summary lists the frames in their order."""
+    base = tmp_path / "data"
+    shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
+    first_json = sorted((base / "keypoints" / REC).iterdir())[0]
+    content = json.loads(first_json.read_text())
+    points = content["people"][0]["pose_keypoints_2d"]
+    for k in (11, 14, 19, 20, 21, 22, 23, 24):  # ankles and feet
+        points[3 * k:3 * k + 3] = [0.0, 0.0, 0.0]
+    first_json.write_text(json.dumps(content))
+    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, "prox"), "--sequence",
+                  "--frames", "2")
     assert run.returncode == 0, run.stderr
     summary = json.loads((tmp_path / "seq" / REC / "summary.json").read_text())
     assert summary["sequence"] is True and summary["frames_fitted"] == 2
-    first, second = (json.loads((tmp_path / "seq" / REC / "results" / f["frame"] / "000.json")
-                                .read_text()) for f in summary["frames"])
-    assert "temporal" in second["losses"] and "temporal" not in first["losses"]
-    assert first["phenotype"] == second["phenotype"]  # shape frozen after the first frame
-    assert list(second["timings"]["stages"]) == ["final", "contact"]  # keypoints, then scene
+    names = [f["frame"] for f in summary["frames"]]
+    assert names == sorted(names) and first_json.name.startswith(names[0])
+    first, second = (json.loads((tmp_path / "seq" / REC / "results" / name / "000.json")
+                                .read_text()) for name in names)
+    assert "temporal" in first["losses"] and "temporal" not in second["losses"]
+    assert first["phenotype"] == second["phenotype"]  # shape kept from the anchor frame
+    assert list(first["timings"]["stages"]) == ["final", "contact"]  # keypoints, then scene
+
+
+def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_path):
+    """The second frame's keypoints jump 400 px (a cut in the video): warm-started from
+    the first frame's fit the body cannot follow, so the frame is fitted from scratch
+    too, the nearer fit kept and the event recorded."""
+    base = tmp_path / "data"
+    shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
+    second_json = sorted((base / "keypoints" / REC).iterdir())[1]
+    content = json.loads(second_json.read_text())
+    points = content["people"][0]["pose_keypoints_2d"]
+    for k in range(0, len(points), 3):
+        if points[k + 2] > 0:
+            points[k] -= 400.0
+    second_json.write_text(json.dumps(content))
+    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, "prox"), "--sequence",
+                  "--frames", "2", "--no-report")
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((tmp_path / "seq" / REC / "summary.json").read_text())
+    first, second = summary["frames"]
+    assert not any("refitted" in e for e in first["events"])
+    assert any("refitted from scratch" in e for e in second["events"]), second["events"]
+    assert second["reprojection_error_px"] < 3 * max(first["reprojection_error_px"], 5.0)

@@ -162,7 +162,8 @@ def test_starts_face_the_camera_when_the_detector_sees_the_face(body):
     def facing_camera(conf: torch.Tensor) -> list[bool]:
         params, _ = best_start(body, camera, keypoints[..., :2], conf, up, config.data_rho,
                                config.init_depth_weight,
-                               [side_swap(label) for label in LABELLINGS], keep=2)
+                               [side_swap(label) for label in LABELLINGS], keep=2,
+                               facing_cost=config.facing_cost)
         forward = axis_angle_to_matrix(params["global_orient"]) @ body.forward_axis()
         return [float(f @ -t) > 0 for f, t in zip(forward, params["transl"])]  # toward it
 

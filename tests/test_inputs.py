@@ -120,6 +120,7 @@ def test_config_inherits_from_its_base(tmp_path):
         load_config(loop)
     assert not load_config("prox-no-swaps").swap_sides
     assert not load_config("prox-no-scale-search").scale_search
+    assert load_config("prox-no-facing").facing_cost == 0 < load_config("prox").facing_cost
 
 
 def test_fit_help_lists_every_built_in_configuration():
