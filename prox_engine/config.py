@@ -39,8 +39,8 @@ class FitConfig:
     swap_sides: bool = True  # consider OpenPose exchanging left and right legs or arms
     scale_search: bool = True  # resolve depth against the scene before the scene stages
     scale_support: bool = True  # the scale search asks that the body rest on a surface
-    # Sequence mode keeps the first frame's shape, so each later frame's depth is the one its
-    # keypoint stage reaches from the previous frame's. On, each frame's scale is searched
+    # Sequence mode keeps the anchor frame's shape, so each other frame's depth is the one
+    # its keypoint stage reaches from its neighbour's. On, each frame's scale is searched
     # against the scene too, before its contact stage, which rescales the body: closer joints
     # (tuning seeds 9 and 12: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm; held-out seed 13:
     # 200.0 -> 153.7), but a size that changes from frame to frame (`prox-rescaled`).

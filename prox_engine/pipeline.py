@@ -96,7 +96,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                                                        camera, scene, config, sequence))
                 previous = results[-1] if results else None
                 if anchor is None and start == 0 and previous is not None:
-                    anchor, anchor_px = previous, _error_px(fitter, previous, frames[0])
+                    anchor, anchor_px = previous, frames_summary[-1]["reprojection_error_px"]
             done += len(chain[start:start + batch])
             if progress:
                 progress(done, len(names), chain[min(start + batch, len(chain)) - 1])
