@@ -50,6 +50,9 @@ class FitConfig:
     # summed confidence is this share of the best frame's (noise moves the sums by a few
     # per cent; a truncated, occluded or blurred frame loses 20-40). 0: the first frame.
     anchor_seen: float = 0.9
+    # Sequence mode also fits a frame from scratch when its neighbour's fit lost the
+    # keypoints (pipeline.REFIT_RATIO), and keeps the nearer fit.
+    sequence_refit: bool = True
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.

@@ -119,7 +119,7 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     results = fitter.fit([frame], warm_start=previous.params,
                          previous_keypoints=previous.keypoints[None])
     error = _error_px(fitter, results[0], frame)
-    if error > max(REFIT_RATIO * anchor_px, REFIT_MIN_PX):
+    if fitter.config.sequence_refit and error > max(REFIT_RATIO * anchor_px, REFIT_MIN_PX):
         fresh = fitter.fit([frame])
         if _error_px(fitter, fresh[0], frame) < error:
             fresh[0].events.append(f"sequence: refitted from scratch, {error:.0f} px off "
