@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -94,22 +95,31 @@ def test_every_frame_failing_is_a_failed_run(sitting_data, tmp_path):
     assert f"{REC}: no frame could be fitted" in run.stderr
 
 
+def _sequence_fit_with(sitting_data, tmp_path, index: int, edit, *extra: str
+                       ) -> tuple[dict, Path]:
+    """``prox fit --sequence`` of the first two sitting frames after ``edit`` changed the
+    flat ``pose_keypoints_2d`` list of frame ``index``; the summary and that frame's file."""
+    base = tmp_path / "data"
+    shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
+    path = sorted((base / "keypoints" / REC).iterdir())[index]
+    content = json.loads(path.read_text())
+    edit(content["people"][0]["pose_keypoints_2d"])
+    path.write_text(json.dumps(content))
+    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, "prox"), "--sequence",
+                  "--frames", "2", *extra)
+    assert run.returncode == 0, run.stderr
+    return json.loads((tmp_path / "seq" / REC / "summary.json").read_text()), path
+
+
 def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
     """The first frame is cut off below the knees: sequence mode fits the second frame,
     the one the detector saw best, from scratch, then the first warm-started from it
     (shape kept, the temporal term on); the summary lists the frames in their order."""
-    base = tmp_path / "data"
-    shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
-    first_json = sorted((base / "keypoints" / REC).iterdir())[0]
-    content = json.loads(first_json.read_text())
-    points = content["people"][0]["pose_keypoints_2d"]
-    for k in (11, 14, 19, 20, 21, 22, 23, 24):  # ankles and feet
-        points[3 * k:3 * k + 3] = [0.0, 0.0, 0.0]
-    first_json.write_text(json.dumps(content))
-    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, "prox"), "--sequence",
-                  "--frames", "2")
-    assert run.returncode == 0, run.stderr
-    summary = json.loads((tmp_path / "seq" / REC / "summary.json").read_text())
+    def hide_feet(points: list[float]) -> None:
+        for k in (11, 14, 19, 20, 21, 22, 23, 24):  # ankles and feet
+            points[3 * k:3 * k + 3] = [0.0, 0.0, 0.0]
+
+    summary, first_json = _sequence_fit_with(sitting_data, tmp_path, 0, hide_feet)
     assert summary["sequence"] is True and summary["frames_fitted"] == 2
     names = [f["frame"] for f in summary["frames"]]
     assert names == sorted(names) and first_json.name.startswith(names[0])
@@ -124,19 +134,12 @@ def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_
     """The second frame's keypoints jump 400 px (a cut in the video): warm-started from
     the first frame's fit the body cannot follow, so the frame is fitted from scratch
     too, the nearer fit kept and the event recorded."""
-    base = tmp_path / "data"
-    shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
-    second_json = sorted((base / "keypoints" / REC).iterdir())[1]
-    content = json.loads(second_json.read_text())
-    points = content["people"][0]["pose_keypoints_2d"]
-    for k in range(0, len(points), 3):
-        if points[k + 2] > 0:
-            points[k] -= 400.0
-    second_json.write_text(json.dumps(content))
-    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, "prox"), "--sequence",
-                  "--frames", "2", "--no-report")
-    assert run.returncode == 0, run.stderr
-    summary = json.loads((tmp_path / "seq" / REC / "summary.json").read_text())
+    def jump(points: list[float]) -> None:
+        for k in range(0, len(points), 3):
+            if points[k + 2] > 0:
+                points[k] -= 400.0
+
+    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 1, jump, "--no-report")
     first, second = summary["frames"]
     assert not any("refitted" in e for e in first["events"])
     assert any("refitted from scratch" in e for e in second["events"]), second["events"]
