@@ -125,8 +125,17 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
         if _error_px(fitter, fresh[0], frame) < error:
             fresh[0].events.append(f"sequence: refitted from scratch, {error:.0f} px off "
                                    f"from its neighbour's fit ({anchor_px:.0f} for the anchor)")
-            return fresh
+            results, fresh = fresh, results
+        _charge(results[0], fresh[0])
     return results
+
+
+def _charge(kept: FitResult, discarded: FitResult) -> None:
+    """Count a discarded fit's time and evaluations in the kept fit's (its own profile
+    entry), so that a frame's seconds are what fitting it took."""
+    kept.seconds += discarded.seconds
+    kept.stage_seconds["discarded_fit"] = discarded.seconds
+    kept.stage_evaluations["discarded_fit"] = sum(discarded.stage_evaluations.values())
 
 
 def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:

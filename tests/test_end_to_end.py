@@ -133,7 +133,7 @@ def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
 def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_path):
     """The second frame's keypoints jump 400 px (a cut in the video): warm-started from
     the first frame's fit the body cannot follow, so the frame is fitted from scratch
-    too, the nearer fit kept and the event recorded."""
+    too, the nearer fit kept and the event recorded; the frame's time counts both fits."""
     def jump(points: list[float]) -> None:
         for k in range(0, len(points), 3):
             if points[k + 2] > 0:
@@ -144,3 +144,6 @@ def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_
     assert not any("refitted" in e for e in first["events"])
     assert any("refitted from scratch" in e for e in second["events"]), second["events"]
     assert second["reprojection_error_px"] < 3 * max(first["reprojection_error_px"], 5.0)
+    profile = second["profile"]
+    assert profile["discarded_fit"]["body_evaluations"] > 0
+    assert second["seconds"] >= sum(stage["seconds"] for stage in profile.values()) - 1e-3
