@@ -174,6 +174,37 @@ def test_starts_face_the_camera_when_the_detector_sees_the_face(body):
     assert not all(facing_camera(faint))
 
 
+def test_a_frame_starts_alike_alone_and_in_a_batch(body):
+    """The rigid start search fits each frame's candidates on their own: batched with
+    another frame (here one seen 200 px further left, knees and feet unseen), a frame
+    gets exactly the starts it gets alone. One L-BFGS over the batch's summed loss had
+    the other frame's line searches set this frame's steps."""
+    from prox_engine.initialisation import best_start
+    from prox_engine.keypoints import LABELLINGS, side_swap
+
+    data = json.loads((Path(__file__).parent / "data" / "reacher_facing_camera.json")
+                      .read_text())
+    camera = Camera(**data["camera"])
+    keypoints = torch.zeros(2, N_KEYPOINTS, 3)
+    keypoints[:, :25] = torch.tensor(data["body_keypoints"])
+    keypoints[1, :25, 0] -= 200.0
+    keypoints[1, [10, 11, 13, 14, 19, 20, 21, 22, 23, 24], 2] = 0.0
+    conf = keypoints[..., 2] * body.keypoint_mask
+    config = load_config("prox")
+
+    def starts(frames: slice) -> dict:
+        params, _ = best_start(body, camera, keypoints[frames, :, :2], conf[frames],
+                               torch.tensor(data["up_in_camera"]), config.data_rho,
+                               config.init_depth_weight,
+                               [side_swap(label) for label in LABELLINGS], keep=2,
+                               facing_cost=config.facing_cost)
+        return params
+
+    alone, batched = starts(slice(0, 1)), starts(slice(0, 2))
+    for name in ("global_orient", "transl", "body_pose"):
+        assert torch.equal(alone[name], batched[name][:2]), name
+
+
 def test_several_starts_per_frame_are_distinct_best_first(body):
     """With start_candidates, each frame gets that many starts, frame-major: the first is
     the single best start, and each differs from the better ones in labelling, posture or
