@@ -2,7 +2,6 @@
 with strong Wolfe line search), for a batch of frames or warm-started from a previous fit."""
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -10,7 +9,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import losses
+from . import lbfgs, losses
 from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
@@ -148,14 +147,15 @@ class Fitter:
             self._announce(stage.name)
             if not placed and stage.weights.get("depth", 0) > 0:
                 t0, before = time.perf_counter(), self.evaluations
-                self._rescale(rows.params, *self._depth_scale(rows.params, rows.depth))
+                self._rescale(rows.params, *self._depth_scale(rows.params, rows.depth),
+                              len(frames))
                 stage_seconds["depth_placement"] = time.perf_counter() - t0
                 stage_evaluations["depth_placement"] = self.evaluations - before
                 placed = True
             if not rescaled and self._scene_stage(stage):
                 t0, before = time.perf_counter(), self.evaluations
                 scale, _, vertices = self._scale_search(rows.params)
-                self._rescale(rows.params, scale, vertices)
+                self._rescale(rows.params, scale, vertices, len(frames))
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
@@ -167,7 +167,7 @@ class Fitter:
             if stage.optimize_hands and has_hands:
                 free.append("hand_pose")
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
-                                    rows.depth, previous_keypoints)
+                                    rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choose_after:
                 best = self._best_rows(rows.params, final, keep,
                                        by_scene=choose_after == self.config.start_stages)
@@ -254,33 +254,25 @@ class Fitter:
         return terms
 
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
-                   conf: torch.Tensor, depth: list, previous: torch.Tensor | None
-                   ) -> dict[str, torch.Tensor]:
-        """L-BFGS calls on the ``free`` parameters until the loss settles; returns the
-        terms at the accepted point (not at the line search's last probe)."""
-
+                   conf: torch.Tensor, depth: list, previous: torch.Tensor | None,
+                   frames: int) -> dict[str, torch.Tensor]:
+        """L-BFGS calls on the ``free`` parameters until each frame's loss settles;
+        returns the terms at the accepted points (not at the line search's last probes)."""
         mesh = any(stage.weights.get(term, 0) > 0 for term in MESH_TERMS)
 
-        def objective() -> dict[str, torch.Tensor]:
+        def terms() -> dict[str, torch.Tensor]:
             return self._terms(stage, self.body(params, vertices=mesh), params, target, conf,
                                depth, previous)
 
-        accepted: dict[str, torch.Tensor] = {}  # terms after the last kept call
+        def objective() -> Callable[[slice], torch.Tensor]:
+            values = terms()
+            return lambda rows: sum(t[rows].sum() for t in values.values())
 
-        def settled(before: float) -> bool:
-            with torch.no_grad():
-                accepted.clear()
-                accepted.update(objective())
-            after = float(sum(t.sum() for t in accepted.values()))
-            return abs(before - after) <= self.config.ftol * max(1.0, abs(after))
-
-        self._minimise([params[n] for n in free],
-                       lambda: sum(t.sum() for t in objective().values()), stage.name,
-                       stage.max_iter, stage.max_calls or self.config.max_calls, settled)
-        if not accepted:  # the first call was undone: nothing evaluated where we are
-            with torch.no_grad():
-                accepted.update(objective())
-        return accepted
+        self._minimise([params[n] for n in free], objective, stage.name,
+                       _frame_rows(len(target), frames), stage.max_iter,
+                       stage.max_calls or self.config.max_calls, self.config.ftol)
+        with torch.no_grad():
+            return terms()
 
     # ------------------------------------------------------------------ scene-aware depth
     @staticmethod
@@ -318,54 +310,43 @@ class Fitter:
                 scale[b] = cloud.norm(dim=1).median() / vertices[b, seen[b]].norm(dim=1).median()
         return scale, vertices
 
-    def _rescale(self, params: Params, scale: torch.Tensor, vertices: torch.Tensor) -> None:
+    def _rescale(self, params: Params, scale: torch.Tensor, vertices: torch.Tensor,
+                 frames: int) -> None:
         """Scale each body (its ``vertices``) about the camera centre by ``scale``, which
-        keeps its projection, then refit shape and root to the scaled vertices, in place."""
+        keeps its projection, then refit shape and root to the scaled vertices, in place;
+        a frame none of whose bodies moves by 1 % is left as it is."""
         body = self.body
-        if bool(((scale - 1).abs() < 0.01).all()):
+        moved = [rows for rows in _frame_rows(len(scale), frames)
+                 if bool(((scale[rows] - 1).abs() >= 0.01).any())]
+        if not moved:
             return
         goal = vertices * scale[:, None, None]
         with torch.no_grad():
-            params["transl"] *= scale[:, None]
-        self._minimise([params[n] for n in ["transl", "global_orient", *body.shape_group()]],
-                       lambda: ((body(params).vertices - goal) ** 2).sum(-1).mean() * 1e4,
-                       "rescale")
+            for rows in moved:
+                params["transl"][rows] *= scale[rows, None]
 
-    def _minimise(self, variables: list[torch.Tensor], objective: Callable[[], torch.Tensor],
-                  step: str, max_iter: int | None = None, max_calls: int = 1,
-                  settled: Callable[[float], bool] | None = None) -> None:
-        """Up to ``max_calls`` L-BFGS calls (strong Wolfe line search) on ``variables``, in
-        place, stopping early when ``settled(loss before the call)`` says so. A call that ends
-        on non-finite values is undone, ends the step and is recorded in :attr:`events`."""
+        def objective() -> Callable[[slice], torch.Tensor]:
+            squared = ((body(params).vertices - goal) ** 2).sum(-1)
+            return lambda rows: squared[rows].mean() * 1e4
+
+        self._minimise([params[n] for n in ["transl", "global_orient", *body.shape_group()]],
+                       objective, "rescale", moved)
+
+    def _minimise(self, variables: list[torch.Tensor], objective: lbfgs.Objective,
+                  step: str, groups: list[slice], max_iter: int | None = None,
+                  max_calls: int = 1, ftol: float | None = None) -> None:
+        """L-BFGS on ``variables``, in place, each group of rows (a frame's) on its own
+        (:mod:`lbfgs`): up to ``max_calls`` calls, stopped early when a call changes the
+        group's loss by at most ``ftol`` of it. A call that ends on non-finite values is
+        undone, ends the group's step and is recorded in :attr:`events`."""
         for v in variables:
             v.requires_grad_(True)
-        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=max_iter or self.config.max_iter,
-                                      line_search_fn="strong_wolfe", tolerance_grad=1e-7,
-                                      tolerance_change=1e-10, history_size=20)
-
-        def closure() -> torch.Tensor:
-            optimizer.zero_grad()
-            loss = objective()
-            loss.backward()
-            return loss
-
-        for _ in range(max_calls):
-            backup = [v.detach().clone() for v in variables]
-            try:
-                loss = float(optimizer.step(closure).detach())
-            except (IndexError, ValueError):  # non-finite probes: torch's strong Wolfe
-                loss = math.nan  # search loses its bracket, distributions reject NaN
-            if not (math.isfinite(loss) and all(bool(torch.isfinite(v).all())
-                                                for v in variables)):
-                with torch.no_grad():
-                    for v, b in zip(variables, backup):
-                        v.copy_(b)
-                self.events.append(f"{step}: non-finite values, last step undone")
-                break
-            if settled is not None and settled(loss):
-                break
+        failed = lbfgs.minimise(variables, objective, groups,
+                                max_iter or self.config.max_iter, max_calls, ftol)
         for v in variables:
             v.requires_grad_(False)
+        if any(failed):
+            self.events.append(f"{step}: non-finite values, last step undone")
 
     # ------------------------------------------------------------------ initialisation
     def initialise(self, frames: list[Frame]) -> tuple[Params, list[tuple[str, ...]]]:
@@ -401,3 +382,9 @@ class Fitter:
                 squared, self.config.data_rho)).sum(1))
         best = torch.stack(costs).argmin(0)
         return [labellings[int(b)] for b in best]
+
+
+def _frame_rows(rows: int, frames: int) -> list[slice]:
+    """The rows of each frame (frame-major, as many per frame)."""
+    per_frame = rows // frames
+    return [slice(f * per_frame, (f + 1) * per_frame) for f in range(frames)]

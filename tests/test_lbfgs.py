@@ -1,0 +1,81 @@
+"""Several L-BFGS problems stepped in lockstep: each group of rows as if alone."""
+import torch
+
+from prox_engine import lbfgs
+
+
+def _rosenbrock(x: torch.Tensor, stiffness: torch.Tensor) -> torch.Tensor:
+    """(B,) Rosenbrock functions of rows (B, 2), each with its own stiffness."""
+    return (1 - x[:, 0]) ** 2 + stiffness * (x[:, 1] - x[:, 0] ** 2) ** 2
+
+
+def _lockstep(start: torch.Tensor, stiffness: torch.Tensor, groups: list[slice],
+              max_iter: int, max_calls: int = 1) -> torch.Tensor:
+    x = start.clone().requires_grad_(True)
+
+    def objective():
+        losses = _rosenbrock(x, stiffness)
+        return lambda rows: losses[rows].sum()
+
+    lbfgs.minimise([x], objective, groups, max_iter, max_calls, ftol=1e-9)
+    return x.detach()
+
+
+def _torch(start: torch.Tensor, stiffness: torch.Tensor, max_iter: int) -> torch.Tensor:
+    """torch.optim.LBFGS over all rows' summed loss (one call)."""
+    x = start.clone().requires_grad_(True)
+    optimizer = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter,
+                                  line_search_fn="strong_wolfe", tolerance_grad=1e-7,
+                                  tolerance_change=1e-10, history_size=20)
+
+    def closure():
+        optimizer.zero_grad()
+        loss = _rosenbrock(x, stiffness).sum()
+        loss.backward()
+        return loss
+
+    optimizer.step(closure)
+    return x.detach()
+
+
+START = torch.tensor([[-1.2, 1.0], [3.0, -2.0], [0.5, 2.5]], dtype=torch.float64)
+STIFFNESS = torch.tensor([100.0, 1e5, 10.0], dtype=torch.float64)
+
+
+def test_one_group_follows_torch_exactly():
+    """A single group takes torch's L-BFGS steps, to the last bit."""
+    for max_iter in (5, 40):
+        assert torch.equal(_lockstep(START, STIFFNESS, [slice(0, 3)], max_iter),
+                           _torch(START, STIFFNESS, max_iter))
+
+
+def test_each_group_is_minimised_as_if_alone():
+    """Three rows as three groups: each ends where torch's L-BFGS takes it alone (one
+    optimizer over the three let the stiff row's line searches cut the others' steps:
+    after 5 iterations the first row was elsewhere)."""
+    together = _lockstep(START, STIFFNESS, [slice(i, i + 1) for i in range(3)], 5)
+    for row in range(3):
+        alone = _torch(START[row:row + 1], STIFFNESS[row:row + 1], 5)
+        assert torch.equal(together[row], alone[0])
+    assert not torch.equal(_torch(START, STIFFNESS, 5)[0], together[0])
+    done = _lockstep(START, STIFFNESS, [slice(i, i + 1) for i in range(3)], 100, 3)
+    assert torch.allclose(done, torch.ones(3, 2, dtype=torch.float64), atol=1e-5)
+
+
+def test_a_failed_call_is_undone_for_its_group_only():
+    """A group whose objective raises beyond x = 0.5 (as anny's shape prior rejects
+    non-finite parameters) keeps its point from before the call and is reported; the
+    other group, evaluated in the same rounds, reaches its minimum."""
+    x = torch.zeros(2, 2, dtype=torch.float64, requires_grad=True)
+    target = torch.full((2,), 2.0, dtype=torch.float64)
+
+    def objective():
+        if bool((x[0].detach() > 0.5).any()):
+            raise ValueError("out of the support")
+        loss = ((x - target) ** 2).sum(1)
+        return lambda rows: loss[rows].sum()
+
+    failed = lbfgs.minimise([x], objective, [slice(0, 1), slice(1, 2)], max_iter=50)
+    assert failed == [True, False]
+    assert torch.allclose(x[1].detach(), target, atol=1e-6)
+    assert torch.equal(x[0].detach(), torch.zeros(2, dtype=torch.float64))
