@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 
+from . import lbfgs
 from .body.base import BodyModel, Params
 from .camera import Camera
 from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
@@ -134,56 +135,41 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     tilt0 = (rot0 @ model_up) @ up  # each candidate keeps its lean: lying stays lying
     transl = torch.zeros(batch * count, 3)
 
-    def rotated(turn: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
-        return kp[rows] @ (axis_angle_to_matrix(turn) @ rot0[rows]).transpose(1, 2)
+    def rotated() -> torch.Tensor:
+        return kp @ (axis_angle_to_matrix(turn) @ rot0).transpose(1, 2)
 
-    def data(points: torch.Tensor, weight: torch.Tensor, rows: slice = slice(None),
-             scale: float = rho) -> torch.Tensor:
-        squared = ((camera.project(points) - flat_target[rows]) ** 2).sum(-1)
+    def data(points: torch.Tensor, weight: torch.Tensor, scale: float = rho) -> torch.Tensor:
+        squared = ((camera.project(points) - flat_target) ** 2).sum(-1)
         return (weight * gmof(squared, scale)).sum(1)
 
-    def rigid_fit(rows: slice, depth: torch.Tensor) -> None:
-        """L-BFGS of one frame's candidates (``rows``), in place: each frame on its own,
-        so that a frame starts alike whichever frames it is fitted with."""
-        turned = turn[rows].clone().requires_grad_(True)
-        moved = transl[rows].clone().requires_grad_(True)
-        optimizer = torch.optim.LBFGS([turned, moved], lr=1.0, max_iter=max_iter,
-                                      line_search_fn="strong_wolfe", tolerance_grad=1e-7,
-                                      tolerance_change=1e-10, history_size=20)
-
-        def closure() -> torch.Tensor:
-            optimizer.zero_grad()
-            points = rotated(turned, rows) + moved[:, None]
-            held = (torch.einsum("nk,nk->n", w_c[rows], points[..., 2]) - depth[rows]) ** 2
-            tilt = (axis_angle_to_matrix(turned) @ rot0[rows] @ model_up) @ up - tilt0[rows]
-            loss = (data(points, flat_w[rows], rows) + depth_weight * held
-                    + TILT_WEIGHT * tilt ** 2).sum()
-            loss.backward()
-            return loss
-
-        try:
-            optimizer.step(closure)
-        except (IndexError, ValueError):  # a non-finite probe
-            pass
-        if torch.isfinite(turned).all() and torch.isfinite(moved).all():
-            turn[rows], transl[rows] = turned.detach(), moved.detach()
-        elif events is not None:
-            events.append("initialise: non-finite values in the rigid fit, undone")
-
     # Two rounds: a candidate turns about world up (and leans a little) in the first, and
-    # its similar-triangles depth follows its new orientation in the second.
+    # its similar-triangles depth follows its new orientation in the second. Each frame's
+    # candidates are fitted on their own (lbfgs), so a frame starts alike in any batch.
     per_frame = views * count
+    frame_rows = [slice(f * per_frame, (f + 1) * per_frame) for f in range(frames)]
     for _ in range(2):
         with torch.no_grad():
-            posed = rotated(turn)
+            posed = rotated()
             depth = _depth(camera, posed, flat_target, flat_seen, centre_px)
             ray = camera.backproject(centre_px[:, 0], centre_px[:, 1], depth)
             transl = ray - torch.einsum("nk,nkd->nd", w_c, posed)
-        for frame in range(frames):
-            rigid_fit(slice(frame * per_frame, (frame + 1) * per_frame), depth)
+        turn.requires_grad_(True)
+        transl.requires_grad_(True)
+
+        def objective() -> Callable[[slice], torch.Tensor]:
+            points = rotated() + transl[:, None]
+            held = (torch.einsum("nk,nk->n", w_c, points[..., 2]) - depth) ** 2
+            tilt = (axis_angle_to_matrix(turn) @ rot0 @ model_up) @ up - tilt0
+            loss = data(points, flat_w) + depth_weight * held + TILT_WEIGHT * tilt ** 2
+            return lambda rows: loss[rows].sum()
+
+        failed = lbfgs.minimise([turn, transl], objective, frame_rows, max_iter)
+        turn.requires_grad_(False)
+        transl.requires_grad_(False)
+        if any(failed) and events is not None:
+            events.append("initialise: non-finite values in the rigid fit, undone")
     with torch.no_grad():
-        score = data(rotated(turn) + transl[:, None], flat_seen ** 2,
-                     scale=SCORE_RHO).view(batch, count)
+        score = data(rotated() + transl[:, None], flat_seen ** 2, SCORE_RHO).view(batch, count)
         rotation = axis_angle_to_matrix(turn) @ rot0
         score = score + facing_cost * _turned_away(rotation @ body.forward_axis(), transl,
                                                    conf).view(batch, count)
