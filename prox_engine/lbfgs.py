@@ -17,6 +17,8 @@ from typing import Callable, Generator
 import torch
 from torch.optim.lbfgs import _cubic_interpolate
 
+# Evaluates the model at the variables' current values and returns each group's loss.
+Objective = Callable[[], Callable[[slice], torch.Tensor]]
 # A coroutine yields the flat point it wants evaluated and is sent (loss, gradient) there,
 # or None when the evaluation failed (a non-finite point some term rejects).
 Evaluation = tuple[float, torch.Tensor] | None
@@ -25,10 +27,6 @@ Search = Generator[torch.Tensor, Evaluation, tuple]
 
 class _Failed(Exception):
     """The evaluation of a point this group asked for failed."""
-
-
-# Evaluates the model at the variables' current values and returns each group's loss.
-Objective = Callable[[], Callable[[slice], torch.Tensor]]
 
 
 def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
@@ -117,8 +115,9 @@ def _assign(variables: list[torch.Tensor], rows: slice, point: torch.Tensor) -> 
 
 def _calls(x: torch.Tensor, max_iter: int, max_calls: int, ftol: float | None,
            history: int) -> Search:
-    """A group's minimisation: torch's step calls, as ``Fitter`` made them. Returns the
-    final point and whether a call was undone."""
+    """A group's minimisation: up to ``max_calls`` calls of torch's step, each undone if
+    it fails, the loss compared before and after each. Returns the final point and whether
+    a call was undone."""
     state: dict = {"n_iter": 0, "old_dirs": [], "old_stps": [], "ro": [], "H_diag": 1}
     answer = yield x
     for call in range(max_calls):
