@@ -269,7 +269,7 @@ class Fitter:
             return lambda rows: sum(t[rows].sum() for t in values.values())
 
         self._minimise([params[n] for n in free], objective, stage.name,
-                       _frame_rows(len(target), frames), stage.max_iter,
+                       lbfgs.row_groups(len(target), frames), stage.max_iter,
                        stage.max_calls or self.config.max_calls, self.config.ftol)
         with torch.no_grad():
             return terms()
@@ -316,7 +316,7 @@ class Fitter:
         keeps its projection, then refit shape and root to the scaled vertices, in place;
         a frame none of whose bodies moves by 1 % is left as it is."""
         body = self.body
-        moved = [rows for rows in _frame_rows(len(scale), frames)
+        moved = [rows for rows in lbfgs.row_groups(len(scale), frames)
                  if bool(((scale[rows] - 1).abs() >= 0.01).any())]
         if not moved:
             return
@@ -382,9 +382,3 @@ class Fitter:
                 squared, self.config.data_rho)).sum(1))
         best = torch.stack(costs).argmin(0)
         return [labellings[int(b)] for b in best]
-
-
-def _frame_rows(rows: int, frames: int) -> list[slice]:
-    """The rows of each frame (frame-major, as many per frame)."""
-    per_frame = rows // frames
-    return [slice(f * per_frame, (f + 1) * per_frame) for f in range(frames)]

@@ -145,8 +145,6 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     # Two rounds: a candidate turns about world up (and leans a little) in the first, and
     # its similar-triangles depth follows its new orientation in the second. Each frame's
     # candidates are fitted on their own (lbfgs), so a frame starts alike in any batch.
-    per_frame = views * count
-    frame_rows = [slice(f * per_frame, (f + 1) * per_frame) for f in range(frames)]
     for _ in range(2):
         with torch.no_grad():
             posed = rotated()
@@ -163,7 +161,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
             loss = data(points, flat_w) + depth_weight * held + TILT_WEIGHT * tilt ** 2
             return lambda rows: loss[rows].sum()
 
-        failed = lbfgs.minimise([turn, transl], objective, frame_rows, max_iter)
+        failed = lbfgs.minimise([turn, transl], objective, lbfgs.row_groups(batch * count, frames),
+                                max_iter)
         turn.requires_grad_(False)
         transl.requires_grad_(False)
         if any(failed) and events is not None:

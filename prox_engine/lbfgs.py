@@ -29,6 +29,12 @@ class _Failed(Exception):
     """The evaluation of a point this group asked for failed."""
 
 
+def row_groups(rows: int, groups: int) -> list[slice]:
+    """``rows`` split into ``groups`` consecutive groups of as many rows (a frame's)."""
+    size = rows // groups
+    return [slice(g * size, (g + 1) * size) for g in range(groups)]
+
+
 def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
              max_iter: int, max_calls: int = 1, ftol: float | None = None,
              history: int = 20) -> list[bool]:

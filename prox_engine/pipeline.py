@@ -125,8 +125,11 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
         if _error_px(fitter, fresh[0], frame) < error:
             fresh[0].events.append(f"sequence: refitted from scratch, {error:.0f} px off "
                                    f"from its neighbour's fit ({anchor_px:.0f} for the anchor)")
-            results, fresh = fresh, results
-        _charge(results[0], fresh[0])
+            kept, discarded = fresh, results
+        else:
+            kept, discarded = results, fresh
+        _charge(kept[0], discarded[0])
+        return kept
     return results
 
 
