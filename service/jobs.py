@@ -164,7 +164,8 @@ class JobStore:
         return True
 
     def reap(self) -> list[str]:
-        """Recover running jobs whose worker stopped heart-beating; returns their ids."""
+        """Recover running jobs whose worker stopped heart-beating, and queued ones that a
+        worker took from the queue but never started; returns their ids."""
         reaped = []
         deadline = time.time() - self.settings.stale_after_s
         for job_id in self.redis.smembers(self._RUNNING):
@@ -177,6 +178,29 @@ class JobStore:
                                     f"its worker stopped responding ({silent:.0f} s without "
                                     "a heartbeat)"):
                     reaped.append(job_id)
+        return reaped + self._reap_taken()
+
+    def _reap_taken(self) -> list[str]:
+        """Attempts that RQ handed to a worker (its intermediate list and started registry)
+        whose records are still queued after ``stale_after_s``: the worker died, or Redis
+        was killed, between taking the attempt and starting it, and nothing else would
+        ever run the job. Each is first marked, then retried when the mark is that old."""
+        reaped = []
+        taken = {*self.queue.intermediate_queue.get_job_ids(),
+                 *self.queue.started_job_registry.get_job_ids(cleanup=False)}
+        for rq_id in taken:
+            job_id, _, attempt = rq_id.rpartition("-")
+            record = self.get(job_id)
+            if (record is None or record["status"] != QUEUED
+                    or str(record["attempt"]) != attempt):
+                continue
+            mark = f"prox:taken:{rq_id}"
+            self.redis.set(mark, time.time(), nx=True, ex=10 * self.settings.stale_after_s)
+            waited = time.time() - float(self.redis.get(mark) or time.time())
+            if waited >= self.settings.stale_after_s and self.worker_lost(
+                    job_id, record["attempt"],
+                    f"a worker took it but never started it ({waited:.0f} s)"):
+                reaped.append(job_id)
         return reaped
 
     # ------------------------------------------------------------------ worker side

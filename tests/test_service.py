@@ -556,6 +556,32 @@ def test_a_job_whose_worker_vanished_is_reaped_and_retried(stack, dataset_zip):
     assert job["status"] == "finished" and job["attempt"] == 2 and job["error"] is None
 
 
+def test_a_job_a_worker_took_but_never_started_is_retried(stack):
+    """A worker takes an attempt off the queue (RQ moves it to its intermediate list) and
+    dies, or Redis is killed, before the attempt starts: the record stays queued and no
+    worker would ever run it. The reaper retries it once it has waited ``stale_after_s``.
+    A queue of its own keeps the stack's worker away from it."""
+    from rq import Queue
+
+    from service.jobs import JobOptions, JobStore
+    from service.settings import Settings
+
+    store = JobStore(Settings(redis_url=stack.redis_url, queue="taken-test", stale_after_s=1))
+    job_id = store.new_id()
+    store.create(job_id, "alice", JobOptions(config="rgb"), {REC: ["f1"]}, 1)
+    assert store.reap() == []  # still waiting in the queue: nothing to do
+    assert Queue.lmove(store.queue.connection, store.queue.key, timeout=None)  # taken
+    assert store.reap() == []  # marked, not yet retried
+    assert store.get(job_id)["attempt"] == 1
+    time.sleep(1.2)
+    assert store.reap() == [job_id]
+    record = store.get(job_id)
+    assert record["status"] == "queued" and record["attempt"] == 2
+    assert "never started it" in record["error"]
+    assert store.queue.get_job_ids() == [f"{job_id}-2"]
+    assert store.reap() == []  # the new attempt waits in the queue
+
+
 def test_a_redis_restart_loses_no_job_and_the_api_says_503_meanwhile(stack, dataset_zip):
     """Redis killed mid-job: every /v1 route is a JSON 503 with Retry-After while it is
     down; restarted from its append-only file, it still has both jobs, the busy worker
