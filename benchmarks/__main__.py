@@ -26,7 +26,8 @@ from .generate import KINDS, make_benchmark
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
            "prox-no-support", "prox-one-start", "prox-start-by-data", "prox-no-arm-restarts",
-           "prox-no-facing", "prox-scene-translates", "prox", "prox-soft", "prox" + SEQUENCE,
+           "prox-no-facing", "prox-no-upright", "prox-scene-translates", "prox", "prox-soft",
+           "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-no-refit" + SEQUENCE,
            "prox-rescaled" + SEQUENCE, "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}

@@ -88,6 +88,15 @@ class FitConfig:
     # paper's term); `prox-soft` sets 2 cm: more accurate, but more vertices end up more
     # than 1 cm inside the scan.
     penetration_tolerance: float = 0.0
+    # Every stage (as the joint limits): the trunk (mid-hip to neck) is drawn toward world
+    # up, robustly, while within about upright_rho (radians) of it, barely beyond (a
+    # reclining or lying body keeps its angle). A trunk leaning toward or away from the
+    # camera projects almost alike, and the scale search rests the feet of a body leaning
+    # back on the floor too far away. Only over legs seen down to an ankle: on a frame cut
+    # off at the knees the legs are guessed, and an upright trunk over guessed straight
+    # legs made a seated person a standing one, metres off.
+    upright_weight: float = 0.0
+    upright_rho: float = 0.35
     contact_rho: float = 0.05
     contact_max_angle: float = 45.0
     contact_max_distance: float = 0.15  # vertices farther than this are not attracted

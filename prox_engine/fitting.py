@@ -22,6 +22,7 @@ from .scene import Scene
 
 # Terms that read the posed mesh; stages without them pose keypoints and spheres only.
 MESH_TERMS = ("penetration", "contact", "depth")
+ANKLES = [11, 14]  # BODY_25
 
 
 @dataclass
@@ -84,6 +85,8 @@ class Fitter:
         if needs_scene and scene is None:
             raise ValueError(f"configuration '{config.name}' needs a scene")
         self.body, self.camera, self.config, self.scene = body, camera, config, scene
+        # World up in camera coordinates (without a scene, the camera's -y).
+        self.up = scene.up_in_camera() if scene is not None else torch.tensor([0.0, -1.0, 0.0])
         self.on_stage = on_stage  # told each stage's name as it starts (progress, cancelling)
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
@@ -238,6 +241,10 @@ class Fitter:
         for name, prior in priors.items():
             if w.get(name, 0) > 0:
                 terms[name] = w[name] ** (2 if cfg.squared_priors else 1) * prior(params)
+        if cfg.upright_weight > 0:
+            seen = (conf[:, ANKLES] > 0).any(1)
+            terms["upright"] = cfg.upright_weight * seen * losses.upright(out, self.up,
+                                                                         cfg.upright_rho)
         if w.get("self_penetration", 0) > 0:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:
@@ -356,10 +363,8 @@ class Fitter:
         frame the parts whose left and right the detector most likely exchanged (with
         ``config.swap_sides``)."""
         target, conf = self._targets(frames)
-        up = self.scene.up_in_camera() if self.scene is not None else torch.tensor(
-            [0.0, -1.0, 0.0])
         labellings = LABELLINGS if self.config.swap_sides else LABELLINGS[:1]
-        params, chosen = best_start(self.body, self.camera, target, conf, up,
+        params, chosen = best_start(self.body, self.camera, target, conf, self.up,
                                     self.config.data_rho, self.config.init_depth_weight,
                                     [side_swap(label) for label in labellings],
                                     events=self.events, keep=self.config.start_candidates,

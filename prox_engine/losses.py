@@ -26,6 +26,16 @@ def keypoint_data(out: BodyOutput, camera: Camera, target: torch.Tensor,
     return (weight * gmof(squared, rho)).sum(1)
 
 
+def upright(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
+    """Robust squared angle (B,) between the trunk (BODY_25 mid-hip to neck) and world
+    ``up`` (3,) in camera coordinates: standing and sitting people hold their trunks near
+    vertical, and a trunk leaning toward or away from the camera projects almost alike."""
+    trunk = out.keypoints[:, 1] - out.keypoints[:, 8]
+    angle = torch.atan2(torch.linalg.cross(trunk, up.expand_as(trunk)).norm(dim=-1),
+                        trunk @ up)
+    return gmof(angle ** 2, rho)
+
+
 def penetration(out: BodyOutput, body: BodyModel, scene: Scene,
                 tolerance: float = 0.0) -> torch.Tensor:
     """Penetration energy of the body's scene vertices, (B,)."""

@@ -90,6 +90,53 @@ def test_world_up_in_camera_coordinates():
     assert float((up - viewing_axis).norm()) > 0.5
 
 
+def _leaning(body, cam2world: np.ndarray, degrees: float) -> BodyOutput:
+    """A mean standing body on the floor at the camera's target, its whole body tipped by
+    ``degrees`` about the world x axis, posed in the camera frame."""
+    out, shift = _placed(body, body.init_params(1), cam2world)
+    tip = torch.tensor(Rotation.from_euler("x", degrees, degrees=True).as_matrix(),
+                       dtype=torch.float32)
+    keypoints = (out.keypoints[0] + shift) @ tip.T
+    return BodyOutput(None, world_to_camera(keypoints, cam2world)[None])
+
+
+def test_upright_term_measures_the_trunk_against_world_up(body):
+    """Seen by a tilted, rolled, off-centre camera: a standing trunk costs nothing, one
+    tipped by 20 degrees the robust square of 20 degrees, and a lying one little more
+    than that (the term saturates), whichever way the camera is turned."""
+    from prox_engine.losses import gmof, upright
+
+    cam2world = tilted_camera()
+    up = floor_scene(cam2world).up_in_camera()
+    rho = load_config("prox").upright_rho
+    standing = float(upright(_leaning(body, cam2world, 0.0), up, rho))
+    tipped = float(upright(_leaning(body, cam2world, 20.0), up, rho))
+    lying = float(upright(_leaning(body, cam2world, 90.0), up, rho))
+    trunk_tilt = math.radians(20.0)  # the mean body's trunk is within a degree of vertical
+    assert standing < 0.02 * tipped
+    assert abs(tipped - float(gmof(torch.tensor(trunk_tilt ** 2), rho))) < 0.15 * tipped
+    assert tipped < lying < 3 * tipped
+
+
+def test_upright_term_spares_frames_cut_off_at_the_knees(body):
+    """The upright term acts only where the detector saw an ankle: below the knees a
+    truncated frame's legs are the fit's guess."""
+    cam2world = tilted_camera()
+    config = load_config("prox")
+    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    tipped = _leaning(body, cam2world, 20.0)
+    out = BodyOutput(None, tipped.keypoints.expand(2, -1, -1))
+    conf = torch.full((2, N_KEYPOINTS), 0.9)
+    conf[1, [11, 14, 19, 20, 21, 22, 23, 24]] = 0.0  # cut off below the knees
+    params = body.init_params(2)
+    target = CAMERA.project(out.keypoints)[..., :2]
+    terms = fitter._terms(config.stages[0], out, params, target, conf, [None, None], None)
+    assert float(terms["upright"][0]) > 0 and float(terms["upright"][1]) == 0
+    config.upright_weight = 0.0
+    assert "upright" not in fitter._terms(config.stages[0], out, params, target, conf,
+                                          [None, None], None)
+
+
 @pytest.mark.parametrize("yaw", [0.0, 1.0])
 def test_initialisation_is_upright_at_the_true_depth(body, yaw):
     """Seen by a tilted, rolled camera, a standing person (facing it, or turned by about
