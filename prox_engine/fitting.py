@@ -14,7 +14,8 @@ from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, vertex_normals
-from .keypoints import BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, Keypoints, side_swap
+from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, Keypoints,
+                        side_swap)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices
 from .scene import Scene
@@ -22,7 +23,6 @@ from .scene import Scene
 
 # Terms that read the posed mesh; stages without them pose keypoints and spheres only.
 MESH_TERMS = ("penetration", "contact", "depth")
-ANKLES = [11, 14]  # BODY_25
 
 
 @dataclass

@@ -8,7 +8,7 @@ import torch
 from .body.base import BodyModel, BodyOutput
 from .camera import Camera
 from .geometry import VertexNormals, vertex_normals
-from .keypoints import BODY
+from .keypoints import BODY, MID_HIP, NECK
 from .scene import Scene
 
 
@@ -30,7 +30,7 @@ def upright(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
     """Robust squared angle (B,) between the trunk (BODY_25 mid-hip to neck) and world
     ``up`` (3,) in camera coordinates: standing and sitting people hold their trunks near
     vertical, and a trunk leaning toward or away from the camera projects almost alike."""
-    trunk = out.keypoints[:, 1] - out.keypoints[:, 8]
+    trunk = out.keypoints[:, NECK] - out.keypoints[:, MID_HIP]
     angle = torch.atan2(torch.linalg.cross(trunk, up.expand_as(trunk)).norm(dim=-1),
                         trunk @ up)
     return gmof(angle ** 2, rho)
