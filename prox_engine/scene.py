@@ -56,20 +56,14 @@ class Scene:
         """How deep (>= 0, differentiable) camera-frame points (..., 3) are inside the
         scene: from the SDF grid, and, for points the grid puts within ``exact_band`` of a
         surface, from the nearest triangles themselves, which resolves furniture thinner
-        than a voxel. The triangles are searched without gradient first; only the points
-        found inside (few) are searched again with it."""
+        than a voxel."""
         world = self.to_world(points_cam)
         grid = self.sdf(world)
         flat, values = world.reshape(-1, 3), grid.reshape(-1)
         near = torch.nonzero(values.detach().abs() < exact_band).flatten()
         if len(near):
-            with torch.no_grad():
-                exact, _ = self._triangle_distance(flat[near])
+            exact, _ = self._triangle_distance(flat[near])
             values = values.index_put((near,), exact.to(values.dtype))
-            inside = near[exact < 0]
-            if len(inside):
-                exact, _ = self._triangle_distance(flat[inside])
-                values = values.index_put((inside,), exact.to(values.dtype))
         return torch.relu(-values).reshape(grid.shape)
 
     def _triangle_distance(self, world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -173,23 +173,26 @@ def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: n
     distance differentiable in the points (the k-d tree uses as many threads as torch, so
     PROX_THREADS bounds it).
 
-    The candidates are the faces of the k nearest surface samples (found without gradient).
-    Among faces at the same distance (nearest point on a shared edge or vertex) the one
-    whose plane the point is farthest from decides the sign, which is right on both convex
-    and concave edges. With face ``areas``, every candidate votes instead, by its area and
-    by how squarely it faces the point (plane distance over distance): a noisy scan's
-    sliver at an edge, whose plane may pass through a point far away, then cannot flip
-    the sign (a head 30 cm above a chair back's noisy top edge read 31 cm inside).
+    The candidates are the faces of the k nearest surface samples. Among faces at the same
+    distance (nearest point on a shared edge or vertex) the one whose plane the point is
+    farthest from decides the sign, which is right on both convex and concave edges. With
+    face ``areas``, every candidate votes instead, by its area and by how squarely it faces
+    the point (plane distance over distance): a noisy scan's sliver at an edge, whose plane
+    may pass through a point far away, then cannot flip the sign (a head 30 cm above a
+    chair back's noisy top edge read 31 cm inside).
+
+    Everything is found without gradient: the distance's gradient is the unit vector from
+    the nearest surface point to the point, so autograd need only see |p - closest|.
     """
-    query = np.nan_to_num(points.detach().cpu().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
-    _, nearest = tree.query(query, k=k, workers=torch.get_num_threads())
-    cand = torch.from_numpy(sample_face[nearest].reshape(len(points), k))  # N, k
-    p = points.to(tri.dtype)[:, None].expand(-1, k, -1)
-    t = tri[cand]  # N, k, 3, 3
-    closest = closest_point_on_triangles(p, t[:, :, 0], t[:, :, 1], t[:, :, 2])
-    diff = p - closest
-    dist = (diff.pow(2).sum(-1) + 1e-14).sqrt()  # finite gradient on the surface too
     with torch.no_grad():
+        query = np.nan_to_num(points.cpu().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
+        _, nearest = tree.query(query, k=k, workers=torch.get_num_threads())
+        cand = torch.from_numpy(sample_face[nearest].reshape(len(points), k))  # N, k
+        p = points.to(tri.dtype)[:, None].expand(-1, k, -1)
+        t = tri[cand]  # N, k, 3, 3
+        closest = closest_point_on_triangles(p, t[:, :, 0], t[:, :, 1], t[:, :, 2])
+        diff = p - closest
+        dist = diff.pow(2).sum(-1).sqrt()
         plane = (diff * normals[cand]).sum(-1)
         best = dist.min(dim=1, keepdim=True).values
         score = torch.where(dist <= best + 1e-6, plane.abs(), torch.full_like(plane, -1.0))
@@ -197,10 +200,11 @@ def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: n
         if areas is None:
             sign = torch.sign(plane.gather(1, choice)).squeeze(1)
         else:
-            sign = torch.sign((areas[cand] * plane / dist).sum(1))
+            sign = torch.sign((areas[cand] * plane / dist.clamp_min(1e-12)).sum(1))
         sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-    rows = torch.arange(len(points))
-    return dist.gather(1, choice).squeeze(1) * sign, closest[rows, choice.squeeze(1)]
+        closest = closest[torch.arange(len(points)), choice.squeeze(1)]
+    distance = ((points.to(tri.dtype) - closest).pow(2).sum(-1) + 1e-14).sqrt()
+    return distance * sign, closest
 
 
 def exact_signed_distance(points: np.ndarray, tree: cKDTree, sample_face: np.ndarray,

@@ -106,6 +106,22 @@ def test_shape_prior_is_annys_age_conditioned_beta_likelihood(body):
     torch.testing.assert_close(grad_ours, grad_expected.float(), rtol=1e-3, atol=1e-3)
 
 
+def test_phenotype_coefficients_are_annys(body):
+    """The one-gather blendshape coefficients equal anny's own, values and gradients, over
+    random phenotypes and the anchors' ends (where anny clamps)."""
+    torch.manual_seed(2)
+    phenotype = torch.cat([torch.rand(64, 6), torch.tensor([[0.0] * 6, [1.0] * 6])])
+    phenotype.requires_grad_(True)
+    empty = phenotype.new_zeros(len(phenotype), 0)
+    theirs = body.model._get_phenotype_blendshape_coefficients(phenotype, empty, empty)
+    ours = body.phenotype_coefficients(phenotype)
+    torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-6)
+    weights = torch.randn_like(theirs)
+    grad_ours, = torch.autograd.grad((ours * weights).sum(), phenotype)
+    grad_theirs, = torch.autograd.grad((theirs * weights).sum(), phenotype)
+    torch.testing.assert_close(grad_ours[:64], grad_theirs[:64], rtol=1e-4, atol=1e-4)
+
+
 def test_loading_the_body_model_prints_nothing():
     """No warp device banner or CUDA warning at the head of every command and worker log
     (the warning comes from warp's C code, straight to file descriptor 2)."""

@@ -151,6 +151,7 @@ class AnnyBody(BodyModel):
         weights[8] = (weights[9] + weights[12]) / 2  # mid-hip
         self.register_buffer("keypoint_weights", weights[BODY])
         self._rest_cache: dict[str, torch.Tensor] | None = None
+        self._setup_phenotype_coefficients()
         self._setup_static_geometry()
         self._setup_keypoint_anchors()
 
@@ -359,6 +360,61 @@ class AnnyBody(BodyModel):
         pose[:, self.hand_index, :3, :3] = axis_angle_to_matrix(params["hand_pose"])
         return pose
 
+    def _setup_phenotype_coefficients(self) -> None:
+        """anny's phenotype blendshape coefficients as one gather and product: each of its
+        blendshapes is the product of one variation weight per phenotype (a hat function
+        of the value over the phenotype's evenly spaced anchors), and those of the
+        phenotypes held fixed (race, cup size, firmness) are constants, folded in here.
+        anny's own loops cost a millisecond per forward and backward."""
+        from anny.models.model_data import PHENOTYPE_VARIATIONS
+
+        model = self.model
+        fixed = torch.ones(len(model.stacked_phenotype_blend_shapes_mask))
+        column, source, centre, step = 0, [], [], []
+        mask = model.stacked_phenotype_blend_shapes_mask.bool()
+        for feature, variations in PHENOTYPE_VARIATIONS.items():
+            count = len(variations)
+            if feature in PHENOTYPES:
+                anchors = model.anchors[feature]
+                source += [PHENOTYPES.index(feature)] * count
+                centre += anchors.tolist()
+                step += [float(anchors[1] - anchors[0])] * count
+            else:  # at anny's default of 0.5 (race: thirds)
+                values = (torch.full((count,), 1 / count) if feature == "race" else
+                          torch.relu(1 - (0.5 - torch.linspace(0, 1, count)).abs() * (count - 1)))
+                for i, value in enumerate(values):
+                    fixed = torch.where(mask[:, column + i], fixed * value, fixed)
+                source += [-1] * count
+                centre += [0.0] * count
+                step += [1.0] * count
+            column += count
+        free = torch.tensor(source) >= 0
+        picks = [row[free[row]] for row in (torch.nonzero(r).flatten() for r in mask)]
+        width = max(len(p) for p in picks)
+        slots = free.nonzero().flatten()
+        index = torch.full((len(picks), width), len(slots))  # padded: a column of ones
+        for k, p in enumerate(picks):
+            index[k, :len(p)] = torch.searchsorted(slots, p)
+        self.register_buffer("phenotype_source", torch.tensor(source)[free])
+        self.register_buffer("phenotype_centre", torch.tensor(centre)[free])
+        self.register_buffer("phenotype_step", torch.tensor(step)[free])
+        self.register_buffer("phenotype_lo", torch.tensor([float(model.anchors[f][0]) for f in
+                                                           PHENOTYPES])[self.phenotype_source])
+        self.register_buffer("phenotype_hi", torch.tensor([float(model.anchors[f][-1]) for f in
+                                                           PHENOTYPES])[self.phenotype_source])
+        self.register_buffer("phenotype_index", index)
+        projection = model.phenotype_blendshape_projection
+        self.register_buffer("phenotype_projection", fixed[:, None] * projection
+                             if projection is not None else torch.diag(fixed))
+
+    def phenotype_coefficients(self, phenotype: torch.Tensor) -> torch.Tensor:
+        """Blendshape coefficients (B, C) of phenotypes (B, 6) in [0, 1], as anny's."""
+        value = phenotype[:, self.phenotype_source]
+        value = torch.minimum(torch.maximum(value, self.phenotype_lo), self.phenotype_hi)
+        weight = torch.relu(1 - (value - self.phenotype_centre).abs() / self.phenotype_step)
+        weight = torch.cat([weight, weight.new_ones(len(weight), 1)], 1)
+        return weight[:, self.phenotype_index].prod(-1) @ self.phenotype_projection
+
     def _setup_keypoint_anchors(self) -> None:
         """The body keypoints and fingertips without skinning the mesh. A skinned vertex is
         sum_j w_vj T_j [x_v; 1], so a keypoint that is a weighted sum of vertices is
@@ -393,9 +449,7 @@ class AnnyBody(BodyModel):
         frozen = not shape.requires_grad
         if not (frozen and cached is not None and torch.equal(cached["shape"], shape)):
             model = self.model
-            phenotype = torch.sigmoid(shape)
-            empty = phenotype.new_zeros(phenotype.shape[0], 0)
-            coeffs = model._get_phenotype_blendshape_coefficients(phenotype, empty, empty)
+            coeffs = self.phenotype_coefficients(torch.sigmoid(shape))
             heads = model.template_bone_heads + torch.einsum(
                 "bc,ckd->bkd", coeffs, model.bone_heads_blendshapes)
             orientation = roma.special_procrustes(
