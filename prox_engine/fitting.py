@@ -150,15 +150,15 @@ class Fitter:
             self._announce(stage.name)
             if not placed and stage.weights.get("depth", 0) > 0:
                 t0, before = time.perf_counter(), self.evaluations
-                self._rescale(rows.params, *self._depth_scale(rows.params, rows.depth),
+                self._rescale(rows.params, self._depth_scale(rows.params, rows.depth),
                               len(frames))
                 stage_seconds["depth_placement"] = time.perf_counter() - t0
                 stage_evaluations["depth_placement"] = self.evaluations - before
                 placed = True
             if not rescaled and self._scene_stage(stage):
                 t0, before = time.perf_counter(), self.evaluations
-                scale, _, vertices = self._scale_search(rows.params)
-                self._rescale(rows.params, scale, vertices, len(frames))
+                scale, _ = self._scale_search(rows.params)
+                self._rescale(rows.params, scale, len(frames))
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
@@ -289,9 +289,9 @@ class Fitter:
     def _scales_searched(self) -> bool:
         return self.config.scale_search and any(self._scene_stage(s) for s in self.config.stages)
 
-    def _scale_search(self, params: Params) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Per body, the scale about the camera centre at which it best meets the scene,
-        that scale's cost (see :mod:`scale_search`), and the unscaled vertices."""
+    def _scale_search(self, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per body, the scale about the camera centre at which it best meets the scene
+        and that scale's cost (see :mod:`scale_search`)."""
         cfg, body = self.config, self.body
         with torch.no_grad():
             vertices = body(params).vertices
@@ -301,11 +301,11 @@ class Fitter:
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
                                  cfg.contact_max_distance, cfg.scale_support)
-        return scale, cost, vertices
+        return scale, cost
 
-    def _depth_scale(self, params: Params, depth: list) -> tuple[torch.Tensor, torch.Tensor]:
+    def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:
         """Per body, the scale about the camera centre that puts its camera-facing surface
-        at the depth cloud's distance (medians; 1 without a cloud), and the vertices: the
+        at the depth cloud's distance (medians; 1 without a cloud): the
         depth term is robust to a few centimetres and barely pulls a body that the
         keypoints put 20-40 cm off."""
         with torch.no_grad():
@@ -315,25 +315,28 @@ class Fitter:
         for b, cloud in enumerate(depth):
             if cloud is not None and len(cloud):
                 scale[b] = cloud.norm(dim=1).median() / vertices[b, seen[b]].norm(dim=1).median()
-        return scale, vertices
+        return scale
 
-    def _rescale(self, params: Params, scale: torch.Tensor, vertices: torch.Tensor,
-                 frames: int) -> None:
-        """Scale each body (its ``vertices``) about the camera centre by ``scale``, which
-        keeps its projection, then refit shape and root to the scaled vertices, in place;
-        a frame none of whose bodies moves by 1 % is left as it is."""
+    def _rescale(self, params: Params, scale: torch.Tensor, frames: int) -> None:
+        """Scale each body about the camera centre by ``scale``, which keeps its
+        projection: its keypoints are scaled and its shape and root refitted to them, in
+        place (keypoints without the mesh: a quarter of the cost, and the scene stages
+        that follow refit the shape to the scene); a frame none of whose bodies moves by
+        1 % is left as it is."""
         body = self.body
         moved = [rows for rows in lbfgs.row_groups(len(scale), frames)
                  if bool(((scale[rows] - 1).abs() >= 0.01).any())]
         if not moved:
             return
-        goal = vertices * scale[:, None, None]
         with torch.no_grad():
+            goal = body(params, vertices=False).keypoints[:, body.keypoint_mask]
+            goal = goal * scale[:, None, None]
             for rows in moved:
                 params["transl"][rows] *= scale[rows, None]
 
         def objective() -> Callable[[slice], torch.Tensor]:
-            squared = ((body(params).vertices - goal) ** 2).sum(-1)
+            keypoints = body(params, vertices=False).keypoints[:, body.keypoint_mask]
+            squared = ((keypoints - goal) ** 2).sum(-1)
             return lambda rows: squared[rows].mean() * 1e4
 
         self._minimise([params[n] for n in ["transl", "global_orient", *body.shape_group()]],
