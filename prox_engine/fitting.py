@@ -320,9 +320,9 @@ class Fitter:
     def _rescale(self, params: Params, scale: torch.Tensor, frames: int) -> None:
         """Scale each body about the camera centre by ``scale``, which keeps its
         projection: its keypoints are scaled and its shape and root refitted to them, in
-        place (keypoints without the mesh: a quarter of the cost, and the scene stages
-        that follow refit the shape to the scene); a frame none of whose bodies moves by
-        1 % is left as it is."""
+        place (without skinning the mesh: half the cost per evaluation, and the scene
+        stages that follow refit the shape to the scene); a frame none of whose bodies
+        moves by 1 % is left as it is."""
         body = self.body
         moved = [rows for rows in lbfgs.row_groups(len(scale), frames)
                  if bool(((scale[rows] - 1).abs() >= 0.01).any())]

@@ -185,7 +185,7 @@ def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: n
     the nearest surface point to the point, so autograd need only see |p - closest|.
     """
     with torch.no_grad():
-        query = np.nan_to_num(points.cpu().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
+        query = np.nan_to_num(points.detach().cpu().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
         _, nearest = tree.query(query, k=k, workers=torch.get_num_threads())
         cand = torch.from_numpy(sample_face[nearest].reshape(len(points), k))  # N, k
         p = points.to(tri.dtype)[:, None].expand(-1, k, -1)
