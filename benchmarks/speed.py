@@ -1,7 +1,9 @@
 """Where the time goes: per configuration and mode (single-frame, sequence, batched), the
 seconds and body-model evaluations per frame, and the seconds per frame divided by the time
 of one body forward+backward measured on the same machine in the same run (a ratio that
-does not depend on the machine), with the accuracy (PJE) to show nothing was lost.
+does not depend on the machine), with the accuracy (PJE) to show nothing was lost. In
+sequence mode also the seconds of the frames fitted from their neighbour alone: what a long
+recording costs per frame, once its anchor frame's full fit is spread over many frames.
 
     .venv/bin/python -m benchmarks.speed --seed 1 --frames 8 --kinds sit walk --batch 8
 """
@@ -64,6 +66,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
             config = dataclasses.replace(load_config(name), batch_size=size, sdf_dim=sdf_dim)
             fitted = out / "fits" / name / mode.replace(" ", "")
             wall, counted, evaluations, fit_seconds, errors = 0.0, 0, 0.0, 0.0, []
+            frames_seen: list[dict] = []
             for rec in recordings:
                 start = time.perf_counter()
                 summary = fit_recording(data, rec, fitted, config, body,
@@ -73,18 +76,29 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
                 counted += n
                 evaluations += summary["body_evaluations_per_frame"] * n
                 fit_seconds += summary["seconds_per_frame"] * n
+                frames_seen += summary["frames"]
                 errors += evaluate_recording(data, rec, fitted, body, scenes[rec])
             rows[(name, mode)] = {
                 "wall_seconds_per_frame": wall / counted,
                 "fit_seconds_per_frame": fit_seconds / counted,
                 "body_evaluations_per_frame": evaluations / counted,
                 "ratio": fit_seconds / counted / unit["free_shape"],
+                "warm_started_seconds_per_frame": warm_started_seconds(frames_seen),
                 "pje_mm": aggregate(errors)["pje"]}
             log(f"{name:<10} {mode:<9} " + " ".join(f"{k} {v:.3g}"
-                                                    for k, v in rows[(name, mode)].items()))
+                                                    for k, v in rows[(name, mode)].items()
+                                                    if v is not None))
     return {"unit_seconds": unit, "rows": rows,
             "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": batch,
                          "sdf_dim": sdf_dim, "threads": torch.get_num_threads()}}
+
+
+def warm_started_seconds(frames: list[dict]) -> float | None:
+    """Mean seconds of the frames (summary.json entries) fitted from a neighbour alone:
+    neither fitted from scratch (an anchor, a start search) nor refitted; None if none."""
+    warm = [f["seconds"] for f in frames
+            if not {"initialise", "discarded_fit"} & set(f.get("profile", {}))]
+    return sum(warm) / len(warm) if warm else None
 
 
 def markdown(result: dict) -> str:
@@ -95,12 +109,18 @@ def markdown(result: dict) -> str:
             f"{unit['frozen_shape'] * 1000:.1f} ms (shape frozen), "
             f"{unit['free_shape'] * 1000:.1f} ms (shape free; the ratio's unit).\n\n"
             "| config | mode | s/frame (fit) | s/frame (wall) | body evaluations/frame "
-            "| s/frame / body eval | PJE mm |\n|---|---|---|---|---|---|---|\n")
+            "| s/frame / body eval | s/frame warm-started | PJE mm |\n"
+            "|---|---|---|---|---|---|---|---|\n")
     for (name, mode), r in result["rows"].items():
         text += (f"| {name} | {mode} | {r['fit_seconds_per_frame']:.2f} | "
                  f"{r['wall_seconds_per_frame']:.2f} | {r['body_evaluations_per_frame']:.0f} | "
-                 f"{r['ratio']:.0f} | {r['pje_mm']:.1f} |\n")
+                 f"{r['ratio']:.0f} | {_seconds(r['warm_started_seconds_per_frame'])} | "
+                 f"{r['pje_mm']:.1f} |\n")
     return text
+
+
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 def main(argv: list[str] | None = None) -> None:

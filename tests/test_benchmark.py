@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from PIL import Image
 
@@ -79,3 +80,19 @@ def test_small_benchmark_prox_beats_rgb(tmp_path):
     assert "| config | PJE | V2V | p.PJE | p.V2V |" in table and "| prox |" in table
     assert "pen. % as given" in table
     assert "| prox |" in run.stdout
+
+
+def test_speed_benchmark_counts_warm_started_frames_apart():
+    """`benchmarks.speed` reports, besides the mean, the seconds of the sequence frames
+    fitted from their neighbour alone: not anchors (fitted from scratch, with a start
+    search) and not refitted frames (which also paid for a discarded fit)."""
+    from benchmarks.speed import warm_started_seconds
+
+    step = {"seconds": 0.1, "body_evaluations": 10}
+    frames = [{"seconds": 2.0, "profile": {"initialise": step, "global": step}},
+              {"seconds": 0.4, "profile": {"final": step, "contact": step}},
+              {"seconds": 3.0, "profile": {"final": step, "discarded_fit": step}},
+              {"seconds": 0.6, "profile": {"final": step, "contact": step}}]
+    assert warm_started_seconds(frames) == pytest.approx(0.5)
+    assert warm_started_seconds(frames[:1]) is None
+
