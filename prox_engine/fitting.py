@@ -323,19 +323,18 @@ class Fitter:
         place (without skinning the mesh: half the cost per evaluation, and the scene
         stages that follow refit the shape to the scene); a frame none of whose bodies
         moves by 1 % is left as it is."""
-        body = self.body
+        body, defined = self.body, self.body.keypoint_mask
         moved = [rows for rows in lbfgs.row_groups(len(scale), frames)
                  if bool(((scale[rows] - 1).abs() >= 0.01).any())]
         if not moved:
             return
         with torch.no_grad():
-            goal = body(params, vertices=False).keypoints[:, body.keypoint_mask]
-            goal = goal * scale[:, None, None]
+            goal = body(params, vertices=False).keypoints[:, defined] * scale[:, None, None]
             for rows in moved:
                 params["transl"][rows] *= scale[rows, None]
 
         def objective() -> Callable[[slice], torch.Tensor]:
-            keypoints = body(params, vertices=False).keypoints[:, body.keypoint_mask]
+            keypoints = body(params, vertices=False).keypoints[:, defined]
             squared = ((keypoints - goal) ** 2).sum(-1)
             return lambda rows: squared[rows].mean() * 1e4
 

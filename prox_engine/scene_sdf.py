@@ -184,11 +184,12 @@ def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: n
     Everything is found without gradient: the distance's gradient is the unit vector from
     the nearest surface point to the point, so autograd need only see |p - closest|.
     """
+    exact = points.to(tri.dtype)
     with torch.no_grad():
         query = np.nan_to_num(points.detach().cpu().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
         _, nearest = tree.query(query, k=k, workers=torch.get_num_threads())
         cand = torch.from_numpy(sample_face[nearest].reshape(len(points), k))  # N, k
-        p = points.to(tri.dtype)[:, None].expand(-1, k, -1)
+        p = exact[:, None].expand(-1, k, -1)
         t = tri[cand]  # N, k, 3, 3
         closest = closest_point_on_triangles(p, t[:, :, 0], t[:, :, 1], t[:, :, 2])
         diff = p - closest
@@ -203,7 +204,7 @@ def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: n
             sign = torch.sign((areas[cand] * plane / dist.clamp_min(1e-12)).sum(1))
         sign = torch.where(sign == 0, torch.ones_like(sign), sign)
         closest = closest[torch.arange(len(points)), choice.squeeze(1)]
-    distance = ((points.to(tri.dtype) - closest).pow(2).sum(-1) + 1e-14).sqrt()
+    distance = ((exact - closest).pow(2).sum(-1) + 1e-14).sqrt()
     return distance * sign, closest
 
 
