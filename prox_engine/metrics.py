@@ -3,11 +3,13 @@ from the scene's triangles (:meth:`Scene.exact_signed_distance`), not from its S
 that furniture thinner than a voxel is seen."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from .body.base import BodyModel
 from .camera import Camera
-from .keypoints import BODY, Keypoints
+from .keypoints import BODY, Keypoints, side_swap
 from .scene import Scene
 
 PENETRATION_THRESHOLD = 0.01  # a vertex "penetrates" when more than 1 cm inside
@@ -63,10 +65,14 @@ def scene_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene
 
 @torch.no_grad()
 def reprojection_error(keypoints3d: torch.Tensor, keypoints: Keypoints, camera: Camera,
-                       mask: torch.Tensor, min_confidence: float = 0.1) -> float:
-    """Mean pixel distance over the body keypoints detected with some confidence."""
+                       mask: torch.Tensor, swapped: Sequence[str] = (),
+                       min_confidence: float = 0.1) -> float:
+    """Mean pixel distance over the body keypoints detected with some confidence, with the
+    left and right of the parts the fit found ``swapped`` exchanged (as it fitted them: a
+    fit that rightly undid a leg swap is otherwise reported tens of pixels off)."""
     uv = camera.project(keypoints3d[BODY])
-    target = torch.as_tensor(keypoints.data[BODY], dtype=torch.float32)
+    target = torch.as_tensor(keypoints.data[side_swap(tuple(swapped))][BODY],
+                             dtype=torch.float32)
     valid = (target[:, 2] > min_confidence) & mask[BODY]
     if not valid.any():
         return float("nan")

@@ -143,7 +143,7 @@ def _charge(kept: FitResult, discarded: FitResult) -> None:
 
 def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
     return metrics.reprojection_error(result.keypoints, frame.keypoints, fitter.camera,
-                                      fitter.body.keypoint_mask)
+                                      fitter.body.keypoint_mask, result.swapped)
 
 
 def _chains(rec: Recording, names: list[str], anchor_seen: float) -> list[list[str]]:
@@ -190,7 +190,7 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
                  sequence: bool) -> dict:
     scene_stats, flagged = metrics.scene_stats(result.vertices, body, scene)
     error = metrics.reprojection_error(result.keypoints, frame.keypoints, camera,
-                                       body.keypoint_mask)
+                                       body.keypoint_mask, result.swapped)
     joints = result.keypoints[BODY]
     stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
              "root_m": [round(float(x), 4) for x in joints[BODY_25.index("mid_hip")]],

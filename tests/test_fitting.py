@@ -426,6 +426,33 @@ def test_numerical_events_reach_results_and_summary(sitting_data, tmp_path, body
     assert written["stats"]["events"] == [e["event"] for e in events]
 
 
+def test_reprojection_error_is_against_the_keypoints_as_the_fit_labelled_them(
+        sitting_data, tmp_path, body):
+    """A frame whose detector exchanged the legs: the fit undoes the swap, and the data
+    error in the summary (which flags frames and decides sequence mode's refits) is
+    measured against the keypoints as relabelled, not tens of pixels off against the
+    detector's labels."""
+    import shutil
+
+    from prox_engine.keypoints import side_swap
+    from prox_engine.pipeline import fit_recording
+
+    from .conftest import REC
+
+    base = tmp_path / "data"
+    shutil.copytree(sitting_data, base)
+    path = sorted((base / "keypoints" / REC).glob("*_keypoints.json"))[0]
+    openpose = json.loads(path.read_text())
+    pose = np.asarray(openpose["people"][0]["pose_keypoints_2d"]).reshape(25, 3)
+    openpose["people"][0]["pose_keypoints_2d"] = pose[side_swap(("legs",))[:25]].ravel().tolist()
+    path.write_text(json.dumps(openpose))
+    config = load_config("rgb")
+    result = fit_recording(base, REC, tmp_path / "out", config, body, max_frames=1)
+    frame = result.summary["frames"][0]
+    assert frame["sides_swapped"] == ["legs"]
+    assert frame["reprojection_error_px"] < 10, frame["reprojection_error_px"]
+
+
 def test_rgb_places_an_average_person_at_the_true_depth(body, sitting_data):
     """Clean keypoints of a person of the prior's mean shape sitting in the synthetic
     room, seen by its tilted camera: the rgb fit's torso lies within 5 cm of the true
