@@ -50,6 +50,10 @@ class FitConfig:
     # summed confidence is this share of the best frame's (noise moves the sums by a few
     # per cent; a truncated, occluded or blurred frame loses 20-40). 0: the first frame.
     anchor_seen: float = 0.9
+    # Of those frames, the anchor is the first (of up to pipeline.ANCHOR_TRIES) whose start
+    # keeps the detector's left and right: a frame whose sides the fit relabels, rightly or
+    # not, passes that labelling and posture on to the whole sequence.
+    anchor_as_detected: bool = True
     # Sequence mode also fits a frame from scratch when its neighbour's fit lost the
     # keypoints (pipeline.REFIT_RATIO), and keeps the nearer fit.
     sequence_refit: bool = True

@@ -3,6 +3,8 @@ with strong Wolfe line search), for a batch of frames or warm-started from a pre
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -101,9 +103,21 @@ class Fitter:
             previous_keypoints: torch.Tensor | None = None) -> list[FitResult]:
         """Fit a batch of frames: from scratch with every stage, or (sequence mode) from
         ``warm_start`` with the configuration's sequence stages and the temporal term."""
+        with self._counting():
+            return self._fit(frames, warm_start, previous_keypoints)
+
+    def start_labelling(self, frame: Frame) -> tuple[str, ...]:
+        """The parts whose left and right the best start of ``frame`` exchanges: the start
+        search alone (:attr:`evaluations` counts its body rows)."""
+        self.evaluations = 0
+        with self._counting():
+            return self.initialise([frame])[1][0]
+
+    @contextmanager
+    def _counting(self) -> Iterator[None]:
         hook = self.body.register_forward_pre_hook(self._count)
         try:
-            return self._fit(frames, warm_start, previous_keypoints)
+            yield
         finally:
             hook.remove()
 

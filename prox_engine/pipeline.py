@@ -29,6 +29,9 @@ Progress = Callable[[int, int, str], None]
 # quality.py flags a frame against the recording's median) a table-leaner drifting to
 # twice the anchor's error was left alone; 2 times gained 0-12 mm on tuning seeds 0, 8, 9.
 REFIT_RATIO, REFIT_MIN_PX = 2.0, 10.0
+# Sequence mode starts at most this many well-seen frames (one start search each) looking
+# for an anchor labelled as detected (FitConfig.anchor_as_detected).
+ANCHOR_TRIES = 5
 
 
 @dataclass
@@ -75,7 +78,24 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     done = 0
     anchor: FitResult | None = None
     anchor_px = 0.0  # the anchor's reprojection error
-    for chain in (_chains(rec, names, config.anchor_seen) if sequence else [names]):
+
+    search = {"seconds": 0.0, "evaluations": 0}  # the anchor search's cost
+
+    def as_detected(name: str) -> bool:
+        """Whether the frame's best start keeps the detector's left and right."""
+        try:
+            frame = _load_frame(rec, name, camera, config, depth_camera)
+        except InputError:
+            return False
+        t0 = time.perf_counter()
+        labelling = fitter.start_labelling(frame)
+        search["seconds"] += time.perf_counter() - t0
+        search["evaluations"] += fitter.evaluations
+        return labelling == ()
+
+    for chain in (_chains(rec, names, config.anchor_seen,
+                          as_detected if config.anchor_as_detected else None)
+                  if sequence else [names]):
         previous = anchor  # a backward chain starts from the anchor frame's fit
         for start in range(0, len(chain), batch):
             frames = []
@@ -92,6 +112,9 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                 except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
                     failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
                     results = []
+                if sequence and anchor is None and start == 0 and results:
+                    _charge(results[0], "anchor_search", search["seconds"],
+                            search["evaluations"])
                 for frame, result in zip(frames, results):
                     frames_summary.append(_write_frame(out, recording, frame, result, body,
                                                        camera, scene, config, sequence))
@@ -128,17 +151,18 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
             kept, discarded = fresh, results
         else:
             kept, discarded = results, fresh
-        _charge(kept[0], discarded[0])
+        _charge(kept[0], "discarded_fit", discarded[0].seconds,
+                sum(discarded[0].stage_evaluations.values()))
         return kept
     return results
 
 
-def _charge(kept: FitResult, discarded: FitResult) -> None:
-    """Count a discarded fit's time and evaluations in the kept fit's (its own profile
-    entry), so that a frame's seconds are what fitting it took."""
-    kept.seconds += discarded.seconds
-    kept.stage_seconds["discarded_fit"] = discarded.seconds
-    kept.stage_evaluations["discarded_fit"] = sum(discarded.stage_evaluations.values())
+def _charge(result: FitResult, step: str, seconds: float, evaluations: float) -> None:
+    """Count work done for a frame outside its fit (a discarded fit, the anchor search) in
+    its seconds and profile, so that a frame's seconds are what fitting it took."""
+    result.seconds += seconds
+    result.stage_seconds[step] = seconds
+    result.stage_evaluations[step] = evaluations
 
 
 def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
@@ -146,13 +170,17 @@ def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
                                       fitter.body.keypoint_mask, result.swapped)
 
 
-def _chains(rec: Recording, names: list[str], anchor_seen: float) -> list[list[str]]:
+def _chains(rec: Recording, names: list[str], anchor_seen: float,
+            as_detected: Callable[[str], bool] | None) -> list[list[str]]:
     """Sequence mode's order: from the anchor frame forward to the last, then backward
     from the frame before it to the first. The anchor, whose body shape and placement
     every other frame inherits, is the first frame whose body keypoints' summed
-    confidence is at least ``anchor_seen`` times the best frame's (FitConfig)."""
+    confidence is at least ``anchor_seen`` times the best frame's (FitConfig) and, with
+    ``as_detected``, the first such of ANCHOR_TRIES that it accepts (else the first)."""
     seen = [_seen(rec, name) for name in names]
-    anchor = next(i for i, s in enumerate(seen) if s >= anchor_seen * max(seen))
+    well_seen = [i for i, s in enumerate(seen) if s >= anchor_seen * max(seen)]
+    anchor = next((i for i in well_seen[:ANCHOR_TRIES] if as_detected(names[i])),
+                  well_seen[0]) if as_detected else well_seen[0]
     return [names[anchor:], names[:anchor][::-1]]
 
 

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from prox_engine.keypoints import side_swap
+
 from .conftest import REC, cli_fit, coarse_config
 
 
@@ -128,6 +130,23 @@ def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
     assert "temporal" in first["losses"] and "temporal" not in second["losses"]
     assert first["phenotype"] == second["phenotype"]  # shape kept from the anchor frame
     assert list(first["timings"]["stages"]) == ["final", "contact"]  # keypoints, then scene
+
+
+def test_sequence_mode_anchors_on_a_frame_labelled_as_detected(sitting_data, tmp_path):
+    """The detector exchanged the first frame's legs: sequence mode anchors on the second,
+    as well seen and whose start keeps the detector's left and right, so that no relabelling
+    is passed on to the whole sequence; the first, fitted after it, is relabelled, and the
+    start searches spent choosing count in the anchor's time."""
+    def swap_legs(points: list[float]) -> None:
+        pose = np.asarray(points).reshape(25, 3)
+        points[:] = pose[side_swap(("legs",))[:25]].ravel().tolist()
+
+    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 0, swap_legs, "--no-report")
+    first, second = summary["frames"]
+    assert "anchor_search" in second["profile"] and "anchor_search" not in first["profile"]
+    assert second["sides_swapped"] == [] and first["sides_swapped"] == ["legs"]
+    assert second["profile"]["anchor_search"]["body_evaluations"] > 0
+    assert second["seconds"] >= sum(s["seconds"] for s in second["profile"].values()) - 1e-3
 
 
 def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_path):
