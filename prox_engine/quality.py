@@ -18,9 +18,7 @@ from .scene import Scene
 
 SEEN = 0.5  # detector confidence of a joint it clearly saw
 HIDDEN_SHARE = 0.5  # flag when at least this share of the clearly seen joints is hidden
-RAY_STEP = 0.01  # m between samples along a ray
 RAY_MARGIN = 0.06  # m before a joint (its own flesh) and after the camera that do not count
-SURFACE = 0.006  # m: a ray sample this close to the scan has met a surface (> RAY_STEP / 2)
 UNDERSIDE = 0.10  # m: a body's underside, what rests on something, is its lowest 10 cm
 FLOATING = 0.05  # m: the underside this far above the surface below it
 REACH = 0.5  # m: how far below the underside a surface is looked for
@@ -35,35 +33,13 @@ def _flag(kind: str, detail: str) -> dict:
     return {"kind": kind, "detail": detail}
 
 
-def first_hits(starts: torch.Tensor, directions: torch.Tensor, near: torch.Tensor,
-               far: torch.Tensor, scene: Scene) -> torch.Tensor:
-    """Per ray (camera-frame ``starts`` and unit ``directions``, (R, 3)), the distance
-    along it, between ``near`` and ``far`` (R,), of the first sample (every 1 cm) within
-    6 mm of the scan; inf where there is none. The grid SDF picks the samples worth an
-    exact distance."""
-    steps = torch.arange(0.0, float(far.max()) + RAY_STEP, RAY_STEP)
-    ray, k = torch.nonzero((steps[None] >= near[:, None]) & (steps[None] <= far[:, None]),
-                           as_tuple=True)
-    samples = starts[ray] + directions[ray] * steps[k, None]
-    close = torch.nonzero(scene.signed_distance(samples).abs()
-                          < 2 * scene.sdf.voxel_size).flatten()
-    met = close[scene.exact_signed_distance(samples[close]).abs() < SURFACE]
-    first = torch.full((len(starts),), math.inf)
-    return first.scatter_reduce_(0, ray[met], steps[k[met]], "amin")
-
-
 @torch.no_grad()
 def hidden_joints(joints: torch.Tensor, confidence: np.ndarray, scene: Scene
                   ) -> tuple[int, int]:
     """Of the body joints (camera frame, (25, 3)) the detector clearly saw, how many lie
     behind a scan surface from the camera; returns (hidden, seen)."""
     seen = joints[torch.from_numpy(confidence[BODY] > SEEN)]
-    if len(seen) == 0:
-        return 0, 0
-    length = seen.norm(dim=1)
-    hits = first_hits(torch.zeros_like(seen), seen / length[:, None],
-                      torch.full_like(length, RAY_MARGIN), length - RAY_MARGIN, scene)
-    return int(torch.isfinite(hits).sum()), len(seen)
+    return int((scene.visible_scale(seen, RAY_MARGIN, 1.0) <= 1.0).sum()), len(seen)
 
 
 @torch.no_grad()
@@ -73,8 +49,8 @@ def underside_gap(vertices: torch.Tensor, scene: Scene) -> float:
     height = scene.to_world(vertices)[:, 2]
     under = vertices[height < height.min() + UNDERSIDE][::4]
     down = -scene.up_in_camera().expand_as(under)
-    return float(first_hits(under, down, torch.zeros(len(under)),
-                            torch.full((len(under),), REACH), scene).min())
+    return float(scene.first_hits(under, down, torch.zeros(len(under)),
+                                  torch.full((len(under),), REACH)).min())
 
 
 def frame_flags(stats: dict, vertices: torch.Tensor, joints: torch.Tensor,

@@ -2,6 +2,7 @@
 exact triangle queries for the statistics, both in the camera frame of one recording."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,10 @@ import torch
 from . import assets
 from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples, surface_tree,
                         triangle_signed_distance)
+
+
+RAY_STEP = 0.01  # m between samples along a ray
+SURFACE = 0.006  # m: a ray sample this close to the scan has met a surface (> RAY_STEP / 2)
 
 
 class Scene:
@@ -84,6 +89,35 @@ class Scene:
                                                self._sample_face, self._triangles64,
                                                self._normals64, areas=self._areas64)
         return distance.float()
+
+    @torch.no_grad()
+    def first_hits(self, starts: torch.Tensor, directions: torch.Tensor, near: torch.Tensor,
+                   far: torch.Tensor) -> torch.Tensor:
+        """Per ray (camera-frame ``starts`` and unit ``directions``, (R, 3)), the distance
+        along it, between ``near`` and ``far`` (R,), of the first sample (every 1 cm)
+        within 6 mm of the scan; inf where there is none. The grid SDF picks the samples
+        worth an exact distance."""
+        first = torch.full((len(starts),), math.inf)
+        if len(starts) == 0:
+            return first
+        steps = torch.arange(0.0, float(far.max()) + RAY_STEP, RAY_STEP)
+        ray, k = torch.nonzero((steps[None] >= near[:, None]) & (steps[None] <= far[:, None]),
+                               as_tuple=True)
+        samples = starts[ray] + directions[ray] * steps[k, None]
+        close = torch.nonzero(self.signed_distance(samples).abs()
+                              < 2 * self.sdf.voxel_size).flatten()
+        met = close[self.exact_signed_distance(samples[close]).abs() < SURFACE]
+        return first.scatter_reduce_(0, ray[met], steps[k[met]], "amin")
+
+    def visible_scale(self, points_cam: torch.Tensor, margin: float, max_scale: float
+                      ) -> torch.Tensor:
+        """Per camera-frame point (N, 3), the largest scale about the camera centre (up to
+        ``max_scale``; inf beyond) at which it is still in front of the scan: the first
+        surface its ray meets after ``margin``, plus ``margin`` (a joint's own flesh)."""
+        length = points_cam.norm(dim=1)
+        hits = self.first_hits(torch.zeros_like(points_cam), points_cam / length[:, None],
+                               torch.full_like(length, margin), max_scale * length - margin)
+        return (hits + margin) / length
 
     def world_normals(self, normals_cam: torch.Tensor) -> torch.Tensor:
         return normals_cam @ self.cam2world[:3, :3].T
