@@ -19,6 +19,7 @@ from .geometry import VertexNormals, vertex_normals
 from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, Keypoints,
                         side_swap)
 from .initialisation import best_start
+from .quality import SEEN
 from .scale_search import best_scale, carrying_vertices
 from .scene import Scene
 
@@ -53,11 +54,13 @@ class FitResult:
 @dataclass
 class _Rows:
     """What the stages fit, one row per frame and candidate: the parameters, the keypoints
-    as labelled for that row, depth points and the parts relabelled."""
+    as labelled for that row (and the body joints the detector clearly saw), depth points
+    and the parts relabelled."""
 
     params: Params
     target: torch.Tensor  # (rows, K, 2)
     conf: torch.Tensor  # (rows, K)
+    seen: torch.Tensor  # (rows, 25) bool
     depth: list
     labels: list[tuple[str, ...]]
 
@@ -68,12 +71,14 @@ class _Rows:
                   .flatten(0, 1).contiguous() for k in self.params}
         return _Rows(params, self.target.repeat_interleave(count, 0),
                      self.conf.repeat_interleave(count, 0),
+                     self.seen.repeat_interleave(count, 0),
                      [d for d in self.depth for _ in range(count)],
                      [lab for lab in self.labels for _ in range(count)])
 
     def taken(self, rows: list[int]) -> "_Rows":
         return _Rows({k: v[rows].contiguous() for k, v in self.params.items()},
-                     self.target[rows], self.conf[rows], [self.depth[r] for r in rows],
+                     self.target[rows], self.conf[rows], self.seen[rows],
+                     [self.depth[r] for r in rows],
                      [self.labels[r] for r in rows])
 
 
@@ -132,6 +137,7 @@ class Fitter:
         self.evaluations = 0
         stage_evaluations: dict[str, int] = {}
         target, conf = self._targets(frames)
+        seen = conf[:, BODY] > SEEN  # the detector's, neck and hips included
         conf[:, self.config.ignore_keypoints] = 0
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}
@@ -152,10 +158,11 @@ class Fitter:
         # after which each frame keeps its best row.
         keep, choose_after = len(labels) // len(frames), self.config.start_stages
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
-                     [f.depth_points for f in frames for _ in range(keep)], labels)
+                     seen.repeat_interleave(keep, 0), [f.depth_points for f in frames for _ in range(keep)], labels)
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
             rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]
+            rows.seen[b] = rows.seen[b, order[BODY]]
         final: dict[str, torch.Tensor] = {}
         rescaled = not self.config.scale_search or (
             warm_start is not None and not self.config.sequence_scale_search)
@@ -171,7 +178,7 @@ class Fitter:
                 placed = True
             if not rescaled and self._scene_stage(stage):
                 t0, before = time.perf_counter(), self.evaluations
-                scale, _ = self._scale_search(rows.params)
+                scale, _ = self._scale_search(rows.params, rows.seen)
                 self._rescale(rows.params, scale, len(frames))
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
@@ -186,7 +193,7 @@ class Fitter:
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choose_after:
-                best = self._best_rows(rows.params, final, keep,
+                best = self._best_rows(rows, final, keep,
                                        by_scene=choose_after == self.config.start_stages)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
             if (warm_start is None and self.config.arm_restarts
@@ -214,14 +221,15 @@ class Fitter:
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
 
-    def _best_rows(self, params: Params, terms: dict[str, torch.Tensor], keep: int,
+    def _best_rows(self, rows: _Rows, terms: dict[str, torch.Tensor], keep: int,
                    by_scene: bool) -> list[int]:
         """Rows (one per frame) of the candidates, ``keep`` per frame, with the lowest
         objective (``terms``) plus, ``by_scene`` with a scale search,
         ``start_scene_weight`` times how badly each can meet the scene at its best scale."""
         score = sum(terms.values())
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
-            score = score + self.config.start_scene_weight * self._scale_search(params)[1]
+            score = score + self.config.start_scene_weight * self._scale_search(
+                rows.params, rows.seen)[1]
         score = score.view(-1, keep)
         return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
 
@@ -303,18 +311,23 @@ class Fitter:
     def _scales_searched(self) -> bool:
         return self.config.scale_search and any(self._scene_stage(s) for s in self.config.stages)
 
-    def _scale_search(self, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    def _scale_search(self, params: Params, seen: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per body, the scale about the camera centre at which it best meets the scene
-        and that scale's cost (see :mod:`scale_search`)."""
+        with the joints the detector clearly saw (``seen``, (B, 25)) in view, and that
+        scale's cost (see :mod:`scale_search`)."""
         cfg, body = self.config, self.body
         with torch.no_grad():
-            vertices = body(params).vertices
+            out = body(params)
+            vertices = out.vertices
             normals = vertex_normals(vertices, body.faces)
+        joints = [out.keypoints[b, BODY][seen[b]] for b in range(len(seen))]
         scale, cost = best_scale(vertices, normals, body.scene_vertices, self.carrying,
                                  self.contact_part_ids,
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
-                                 cfg.contact_max_distance, cfg.scale_support)
+                                 cfg.contact_max_distance, cfg.scale_support,
+                                 joints if cfg.scale_visibility else None)
         return scale, cost
 
     def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:

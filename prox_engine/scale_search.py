@@ -18,6 +18,7 @@ import math
 import torch
 
 from .losses import contact_distances, gmof
+from .quality import RAY_MARGIN
 from .scene import Scene
 
 SCALES = torch.exp(torch.linspace(math.log(0.7), math.log(1.4), 97))
@@ -48,6 +49,9 @@ STRIDE = 3
 # correctly placed soles a few centimetres into the floor: shallower penetration is not
 # counted.
 PENETRATION_MARGIN = 0.02
+# Joints the detector clearly saw are in front of the scan: a body scaled until they are
+# behind a bed, wall or table from the camera costs this much (all of them hidden) on top.
+VISIBILITY_WEIGHT = 1.0
 
 
 def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> torch.Tensor:
@@ -63,13 +67,15 @@ def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> tor
 def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
                carrying: torch.Tensor, contact_parts: list[torch.Tensor], scene: Scene,
                use_contact: bool, use_penetration: bool, rho: float, max_angle_deg: float,
-               max_distance: float, use_support: bool = True
+               max_distance: float, use_support: bool = True,
+               seen_joints: list[torch.Tensor] | None = None
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
-    the body's underside is from resting on an upward-facing surface, plus a weak prior
-    on body size. ``vertices``
+    the body's underside is from resting on an upward-facing surface, plus the share of
+    ``seen_joints`` (per frame, (J, 3) camera frame: those the detector clearly saw) that
+    are behind the scan from the camera, plus a weak prior on body size. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
@@ -98,6 +104,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         if use_support:
             cost = cost + SUPPORT_WEIGHT * _unsupported(
                 scaled, signed, normals[b, sampled], carrying, scene, rho)
+        if seen_joints is not None and len(seen_joints[b]):
+            limit = scene.visible_scale(seen_joints[b], RAY_MARGIN, float(SCALES[-1]))
+            cost = cost + VISIBILITY_WEIGHT * (SCALES[:, None] > limit).float().mean(1)
         pick = int((cost + prior).argmin())
         best.append(SCALES[pick])
         lowest.append(cost[pick])

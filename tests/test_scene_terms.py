@@ -325,6 +325,50 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     assert abs(float(scale) - 1.0) < 0.02
 
 
+def test_scale_search_keeps_the_joints_the_detector_saw_in_view(body):
+    """A standing body fitted 25 cm behind a wall (seen by a tilted, rolled, off-centre
+    camera): the joints the detector saw cannot be behind it, so the search brings the body
+    forward until each is at most RAY_MARGIN (its own flesh) behind the wall along its ray
+    and the chest is out of the wall; without them, it stays behind the wall."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.quality import RAY_MARGIN
+    from prox_engine.scale_search import best_scale
+
+    from .test_fitting import tilted_camera
+
+    cam2world = tilted_camera()  # at (1.7, -2.4, 1.6), looking at (0.2, 0.3, 0.9)
+    with torch.no_grad():
+        out = body(body.init_params(1))
+    lift = torch.tensor([0.2, 0.3, -float(out.vertices[0, :, 2].min())])
+    wall = trimesh.creation.box([8.0, 0.1, 4.0])  # front face at y = -0.2
+    wall.apply_translation([0.0, -0.15, 1.0])
+    wall = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(wall.vertices, wall.faces, 0.3))
+    scene = Scene(wall.vertices, wall.faces, cam2world,
+                  compute_sdf(wall.vertices, wall.faces, dim=128, padding=0.5),
+                  sample_spacing=0.05)
+    centre = torch.tensor(cam2world[:3, 3], dtype=torch.float32)
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    vertices = ((out.vertices[0] + lift - centre) @ rotation)[None]
+    joints = (out.keypoints[0, :25] + lift - centre) @ rotation
+    seen = joints[[1, 2, 5, 8, 9, 12]]  # neck, shoulders, hips
+    # Where each seen joint's ray meets the wall's front face, as a scale of the joint.
+    world_rays = seen @ rotation.T
+    limit = ((-0.2 - float(centre[1])) / world_rays[:, 1] + RAY_MARGIN / seen.norm(dim=1))
+    assert float(limit.max()) < 0.9  # the body is well behind the wall
+
+    def search(seen_joints):
+        return float(best_scale(vertices, vertex_normals(vertices, body.faces),
+                                body.scene_vertices, _carrying(body),
+                                list(body.contact_parts.values()), scene, True, True,
+                                rho=0.05, max_angle_deg=45, max_distance=0.15,
+                                seen_joints=seen_joints)[0][0])
+
+    assert search(None) > float(limit.max())
+    scale = search([seen])
+    # In view, and no nearer than it takes to bring the chest out of the wall too.
+    assert float(limit.min()) - 0.06 < scale <= float(limit.min()) + 0.01, (scale, limit)
+
+
 def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
     """A tall person leaning on a table, fitted at the mean adult size (17 % too small, so
     too close and floating): a sole against a table leg or the thighs against the table's
