@@ -56,8 +56,8 @@ class FitConfig:
     # keeps the detector's left and right: a frame whose sides the fit relabels, rightly or
     # not, passes that labelling and posture on to the whole sequence.
     anchor_as_detected: bool = True
-    # Sequence mode also fits a frame from scratch when its neighbour's fit lost the
-    # keypoints (pipeline.REFIT_RATIO), and keeps the nearer fit.
+    # Sequence mode fits a frame again from scratch when its neighbour's fit lost the
+    # keypoints (pipeline.REFIT_RATIO), and goes on from that fit.
     sequence_refit: bool = True
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:

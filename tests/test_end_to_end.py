@@ -151,8 +151,8 @@ def test_sequence_mode_anchors_on_a_frame_labelled_as_detected(sitting_data, tmp
 
 def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_path):
     """The second frame's keypoints jump 400 px (a cut in the video): warm-started from
-    the first frame's fit the body cannot follow, so the frame is fitted from scratch
-    too, the nearer fit kept and the event recorded; the frame's time counts both fits."""
+    the first frame's fit the body cannot follow, so the frame is fitted again from
+    scratch, that fit kept and the event recorded; the frame's time counts both fits."""
     def jump(points: list[float]) -> None:
         for k in range(0, len(points), 3):
             if points[k + 2] > 0:
