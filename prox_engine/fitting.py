@@ -158,7 +158,8 @@ class Fitter:
         # after which each frame keeps its best row.
         keep, choose_after = len(labels) // len(frames), self.config.start_stages
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
-                     seen.repeat_interleave(keep, 0), [f.depth_points for f in frames for _ in range(keep)], labels)
+                     seen.repeat_interleave(keep, 0),
+                     [f.depth_points for f in frames for _ in range(keep)], labels)
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
             rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]

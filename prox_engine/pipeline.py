@@ -112,7 +112,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                 except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
                     failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
                     results = []
-                if sequence and anchor is None and start == 0 and results:
+                if anchor is None and start == 0 and results and search["evaluations"]:
                     _charge(results[0], "anchor_search", search["seconds"],
                             search["evaluations"])
                 for frame, result in zip(frames, results):
