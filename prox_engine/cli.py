@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -257,6 +258,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
             return 0
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's, but a line never breaks inside a hyphenated configuration name."""
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="prox", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -265,7 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--force", action="store_true", help="rebuild even if present")
     p.set_defaults(func=cmd_setup)
 
-    p = sub.add_parser("fit", help="fit recordings of a PROX-layout directory")
+    p = sub.add_parser("fit", help="fit recordings of a PROX-layout directory",
+                       formatter_class=_HelpFormatter)
     p.add_argument("base", type=Path, help="PROX-layout base directory")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--recording", action="append", help="recording name (repeatable); "
