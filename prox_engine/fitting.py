@@ -194,7 +194,7 @@ class Fitter:
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choose_after:
-                best = self._best_rows(rows, final, keep,
+                best = self._best_rows(rows.params, rows.seen, final, keep,
                                        by_scene=choose_after == self.config.start_stages)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
             if (warm_start is None and self.config.arm_restarts
@@ -222,15 +222,16 @@ class Fitter:
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
 
-    def _best_rows(self, rows: _Rows, terms: dict[str, torch.Tensor], keep: int,
-                   by_scene: bool) -> list[int]:
+    def _best_rows(self, params: Params, seen: torch.Tensor, terms: dict[str, torch.Tensor],
+                   keep: int, by_scene: bool) -> list[int]:
         """Rows (one per frame) of the candidates, ``keep`` per frame, with the lowest
         objective (``terms``) plus, ``by_scene`` with a scale search,
-        ``start_scene_weight`` times how badly each can meet the scene at its best scale."""
+        ``start_scene_weight`` times how badly each can meet the scene at its best scale
+        (with the joints ``seen`` (rows, 25) in view)."""
         score = sum(terms.values())
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
             score = score + self.config.start_scene_weight * self._scale_search(
-                rows.params, rows.seen)[1]
+                params, seen)[1]
         score = score.view(-1, keep)
         return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
 
