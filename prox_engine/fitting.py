@@ -16,10 +16,9 @@ from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, vertex_normals
-from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, Keypoints,
-                        side_swap)
+from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
+                        Keypoints, side_swap)
 from .initialisation import best_start
-from .quality import SEEN
 from .scale_search import best_scale, carrying_vertices
 from .scene import Scene
 
@@ -266,9 +265,9 @@ class Fitter:
             if w.get(name, 0) > 0:
                 terms[name] = w[name] ** (2 if cfg.squared_priors else 1) * prior(params)
         if cfg.upright_weight > 0:
-            seen = (conf[:, ANKLES] > 0).any(1)
-            terms["upright"] = cfg.upright_weight * seen * losses.upright(out, self.up,
-                                                                         cfg.upright_rho)
+            legs_seen = (conf[:, ANKLES] > 0).any(1)
+            terms["upright"] = cfg.upright_weight * legs_seen * losses.upright(
+                out, self.up, cfg.upright_rho)
         if w.get("self_penetration", 0) > 0:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:
@@ -334,9 +333,9 @@ class Fitter:
 
     def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:
         """Per body, the scale about the camera centre that puts its camera-facing surface
-        at the depth cloud's distance (medians; 1 without a cloud): the
-        depth term is robust to a few centimetres and barely pulls a body that the
-        keypoints put 20-40 cm off."""
+        at the depth cloud's distance (medians; 1 without a cloud): the depth term is
+        robust to a few centimetres and barely pulls a body that the keypoints put 20-40 cm
+        off."""
         with torch.no_grad():
             vertices = self.body(params).vertices
             seen = losses.facing_camera(vertices, self.body)

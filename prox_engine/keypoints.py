@@ -38,6 +38,7 @@ TORSO_EDGES = [(2, 9), (5, 12)]  # right shoulder - right hip, left shoulder - l
 SHOULDERS = (2, 5)
 MID_HIP, NECK = 8, 1  # the trunk, for the upright prior
 ANKLES = [11, 14]  # right, left: a frame cut off at the knees has neither
+SEEN = 0.5  # detector confidence of a joint it clearly saw
 MAX_PIXEL = 1e6  # no image is this large; squares of larger values overflow float32
 
 

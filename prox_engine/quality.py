@@ -13,12 +13,10 @@ import math
 import numpy as np
 import torch
 
-from .keypoints import BODY
+from .keypoints import BODY, SEEN
 from .scene import Scene
 
-SEEN = 0.5  # detector confidence of a joint it clearly saw
 HIDDEN_SHARE = 0.5  # flag when at least this share of the clearly seen joints is hidden
-RAY_MARGIN = 0.06  # m before a joint (its own flesh) and after the camera that do not count
 UNDERSIDE = 0.10  # m: a body's underside, what rests on something, is its lowest 10 cm
 FLOATING = 0.05  # m: the underside this far above the surface below it
 REACH = 0.5  # m: how far below the underside a surface is looked for
@@ -39,7 +37,7 @@ def hidden_joints(joints: torch.Tensor, confidence: np.ndarray, scene: Scene
     """Of the body joints (camera frame, (25, 3)) the detector clearly saw, how many lie
     behind a scan surface from the camera; returns (hidden, seen)."""
     seen = joints[torch.from_numpy(confidence[BODY] > SEEN)]
-    return int((scene.visible_scale(seen, RAY_MARGIN, 1.0) <= 1.0).sum()), len(seen)
+    return int((scene.visible_scale(seen, 1.0) <= 1.0).sum()), len(seen)
 
 
 @torch.no_grad()

@@ -18,7 +18,6 @@ import math
 import torch
 
 from .losses import contact_distances, gmof
-from .quality import RAY_MARGIN
 from .scene import Scene
 
 SCALES = torch.exp(torch.linspace(math.log(0.7), math.log(1.4), 97))
@@ -105,7 +104,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
             cost = cost + SUPPORT_WEIGHT * _unsupported(
                 scaled, signed, normals[b, sampled], carrying, scene, rho)
         if seen_joints is not None and len(seen_joints[b]):
-            limit = scene.visible_scale(seen_joints[b], RAY_MARGIN, float(SCALES[-1]))
+            limit = scene.visible_scale(seen_joints[b], float(SCALES[-1]))
             cost = cost + VISIBILITY_WEIGHT * (SCALES[:, None] > limit).float().mean(1)
         pick = int((cost + prior).argmin())
         best.append(SCALES[pick])

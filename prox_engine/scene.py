@@ -15,6 +15,7 @@ from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples, surfac
 
 RAY_STEP = 0.01  # m between samples along a ray
 SURFACE = 0.006  # m: a ray sample this close to the scan has met a surface (> RAY_STEP / 2)
+RAY_MARGIN = 0.06  # m before a joint (its own flesh) and after the camera that do not count
 
 
 class Scene:
@@ -109,15 +110,15 @@ class Scene:
         met = close[self.exact_signed_distance(samples[close]).abs() < SURFACE]
         return first.scatter_reduce_(0, ray[met], steps[k[met]], "amin")
 
-    def visible_scale(self, points_cam: torch.Tensor, margin: float, max_scale: float
-                      ) -> torch.Tensor:
-        """Per camera-frame point (N, 3), the largest scale about the camera centre (up to
+    def visible_scale(self, joints_cam: torch.Tensor, max_scale: float) -> torch.Tensor:
+        """Per camera-frame joint (N, 3), the largest scale about the camera centre (up to
         ``max_scale``; inf beyond) at which it is still in front of the scan: the first
-        surface its ray meets after ``margin``, plus ``margin`` (a joint's own flesh)."""
-        length = points_cam.norm(dim=1)
-        hits = self.first_hits(torch.zeros_like(points_cam), points_cam / length[:, None],
-                               torch.full_like(length, margin), max_scale * length - margin)
-        return (hits + margin) / length
+        surface its ray meets after RAY_MARGIN, plus RAY_MARGIN (the joint's own flesh)."""
+        length = joints_cam.norm(dim=1)
+        hits = self.first_hits(torch.zeros_like(joints_cam), joints_cam / length[:, None],
+                               torch.full_like(length, RAY_MARGIN),
+                               max_scale * length - RAY_MARGIN)
+        return (hits + RAY_MARGIN) / length
 
     def world_normals(self, normals_cam: torch.Tensor) -> torch.Tensor:
         return normals_cam @ self.cam2world[:3, :3].T

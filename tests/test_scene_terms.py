@@ -331,8 +331,8 @@ def test_scale_search_keeps_the_joints_the_detector_saw_in_view(body):
     forward until each is at most RAY_MARGIN (its own flesh) behind the wall along its ray
     and the chest is out of the wall; without them, it stays behind the wall."""
     from prox_engine.geometry import vertex_normals
-    from prox_engine.quality import RAY_MARGIN
     from prox_engine.scale_search import best_scale
+    from prox_engine.scene import RAY_MARGIN
 
     from .test_fitting import tilted_camera
 
