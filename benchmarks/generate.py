@@ -27,7 +27,6 @@ import numpy as np
 import torch
 import trimesh
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 from trimesh.transformations import rotation_matrix
 
 from prox_engine import metrics
@@ -53,7 +52,7 @@ def make_benchmark(out: Path, seed: int, frames: int = 4, kinds: Sequence[str] =
                    body: AnnyBody | None = None) -> list[str]:
     """Write one recording per kind under out (PROX layout) and return the recording names."""
     body = body or AnnyBody.load()
-    kinect.write_calibration(Path(out))
+    kinect.write_calibration(Path(out), np.random.default_rng([seed, len(KINDS)]))
     # Height z-scores spread over the kinds, so that each seed has short and tall people.
     z_scores = np.random.default_rng(seed).permutation(np.linspace(-2.0, 2.0, len(KINDS)))
     return [make_recording(Path(out), kind, seed, frames, body, z_scores[KINDS.index(kind)])
@@ -120,12 +119,7 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
 def misregistration(rng: np.random.Generator) -> np.ndarray:
     """A camera-frame rigid error of the scan's registration: 1-3 cm in a random direction
     and 0.5-1.5 degrees about a random axis (what the written cam2world is off by)."""
-    axis, shift = rng.normal(size=3), rng.normal(size=3)
-    error = np.eye(4)
-    error[:3, :3] = Rotation.from_rotvec(
-        axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.5, 1.5))).as_matrix()
-    error[:3, 3] = shift / np.linalg.norm(shift) * rng.uniform(0.01, 0.03)
-    return error
+    return kinect.rigid_error(rng, (0.01, 0.03), (0.5, 1.5))
 
 
 def place_camera(staging: Staging, body: AnnyBody, kind: str,

@@ -6,6 +6,12 @@ The depth camera sits 5 cm beside the colour camera, turned by about a degree, w
 Kinect v2's lens distortion. Depth is rendered with a pinhole camera and then distorted
 (each output pixel looks up where its undistorted ray falls); what a Kinect adds: axial
 noise growing with distance, pixels lost at the silhouette, and dropouts in small patches.
+
+The depth must not agree with the scan by construction (the fitter re-registers the scan
+from it): ``IR.json`` is written a few millimetres and a fraction of a degree off the
+true colour-to-depth pose, as a stereo calibration is; the sensor's range is off by a
+small scale and offset; and the live room holds clutter the scan lacks (boxes and bags
+on the floor).
 """
 from __future__ import annotations
 
@@ -16,7 +22,9 @@ import cv2
 import numpy as np
 import trimesh
 from PIL import Image
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
+from trimesh.transformations import rotation_matrix
 
 from prox_engine.camera import Camera
 from prox_engine.output import atomic_write_text
@@ -27,6 +35,9 @@ MATRIX = np.array([[365.6, 0.0, 257.2], [0.0, 365.6, 206.9], [0.0, 0.0, 1.0]])
 DISTORTION = np.array([0.092, -0.271, 0.0012, -0.0021, 0.091])
 DEPTH_SCALE = 8000.0  # metres -> PNG value (mm x 8)
 NOISE = 0.0004  # axial noise sigma at 1 m (m); it grows with the square of the depth
+CALIBRATION_ERROR = ((0.002, 0.005), (0.1, 0.3))  # written IR pose: metres, degrees off
+RANGE_SCALE, RANGE_OFFSET = 0.003, 0.003  # per recording: sigma of the range's scale, (m)
+CLUTTER = (1, 4)  # unscanned boxes on the floor, 0.15-0.5 m, at least 0.5 m from the person
 
 
 def _colour_to_depth() -> np.ndarray:
@@ -41,24 +52,61 @@ def _colour_to_depth() -> np.ndarray:
 COLOUR_TO_DEPTH = _colour_to_depth()
 
 
-def write_calibration(out: Path) -> None:
-    """``calibration/IR.json``, shared by the recordings of a base directory."""
+def rigid_error(rng: np.random.Generator, metres: tuple[float, float],
+                 degrees: tuple[float, float]) -> np.ndarray:
+    """A rigid transform (4, 4): a shift of ``metres`` and a turn of ``degrees`` (ranges)
+    in random directions."""
+    axis, shift = rng.normal(size=3), rng.normal(size=3)
+    error = np.eye(4)
+    error[:3, :3] = Rotation.from_rotvec(
+        axis / np.linalg.norm(axis) * np.radians(rng.uniform(*degrees))).as_matrix()
+    error[:3, 3] = shift / np.linalg.norm(shift) * rng.uniform(*metres)
+    return error
+
+
+def write_calibration(out: Path, rng: np.random.Generator) -> None:
+    """``calibration/IR.json``, shared by the recordings of a base directory, its
+    colour-to-depth pose off by CALIBRATION_ERROR."""
     (out / "calibration").mkdir(parents=True, exist_ok=True)
+    written = rigid_error(rng, *CALIBRATION_ERROR) @ COLOUR_TO_DEPTH
     atomic_write_text(out / "calibration" / "IR.json", json.dumps({
         "camera_mtx": MATRIX.tolist(), "k": DISTORTION.tolist(),
-        "view_mtx": COLOUR_TO_DEPTH[:3].tolist()}))
+        "view_mtx": written[:3].tolist()}))
+
+
+def clutter(scene: trimesh.Trimesh, people: np.ndarray, rng: np.random.Generator
+            ) -> list[trimesh.Trimesh]:
+    """Boxes standing on the scan's floor (its lowest upward faces) that the scan lacks,
+    0.5 m or more from the person (world-frame vertices ``people``)."""
+    up = scene.face_normals[:, 2] > 0.95
+    centres = scene.triangles_center
+    floor = up & (centres[:, 2] < scene.bounds[0, 2] + 0.05)
+    clear = cKDTree(people[:, :2]).query(centres[:, :2])[0] > 0.5 + 0.35
+    candidates = np.flatnonzero(floor & clear)
+    boxes = []
+    for face in rng.choice(candidates, min(len(candidates), int(rng.integers(*CLUTTER))),
+                           replace=False):
+        size = rng.uniform(0.15, 0.5, 3)
+        box = trimesh.creation.box(size)
+        box.apply_transform(rotation_matrix(rng.uniform(0, np.pi), [0, 0, 1]))
+        box.apply_translation(centres[face] + [0, 0, size[2] / 2])
+        boxes.append(box)
+    return boxes
 
 
 def write_depth(out: Path, rec: str, frames: list[tuple[str, np.ndarray]], faces: np.ndarray,
                 scene: trimesh.Trimesh, cam2world: np.ndarray, rng: np.random.Generator
                 ) -> None:
     """Depth and body-index frames of the true bodies (world-frame vertices per frame) in
-    the scene, seen from the depth camera of a colour camera at ``cam2world``."""
+    the scene plus unscanned :func:`clutter`, seen from the depth camera of a colour camera
+    at ``cam2world``, with a range error of the recording's own."""
     depth_pose = cam2world @ np.linalg.inv(COLOUR_TO_DEPTH)
     pinhole = Camera(MATRIX[0, 0], MATRIX[1, 1], MATRIX[0, 2], MATRIX[1, 2], width=WIDTH,
                      height=HEIGHT)
     every = np.concatenate([v for _, v in frames])
-    renderer = SceneRenderer(scene.vertices, scene.faces, None, pinhole, depth_pose,
+    live = trimesh.util.concatenate([scene, *clutter(scene, every, rng)])
+    scale, offset = 1 + rng.normal(0, RANGE_SCALE), rng.normal(0, RANGE_OFFSET)
+    renderer = SceneRenderer(live.vertices, live.faces, None, pinhole, depth_pose,
                              np.stack([every.min(0), every.max(0)]), WIDTH, HEIGHT)
     lookup = _undistorted_pixels()
     folders = [out / "recordings" / rec / name for name in ("Depth", "BodyIndex")]
@@ -69,7 +117,8 @@ def write_depth(out: Path, rec: str, frames: list[tuple[str, np.ndarray]], faces
             seen, body = renderer.depth("camera", [BodyMesh(vertices, faces)])
             seen, body = seen[lookup], body[lookup]  # distorted, as the lens sees
             person = (body > 0) & (np.abs(seen - body) < 0.01)  # not behind furniture
-            depth = seen + rng.normal(0.0, 1.0, seen.shape) * NOISE * seen ** 2
+            depth = (seen * scale + offset
+                     + rng.normal(0.0, 1.0, seen.shape) * NOISE * seen ** 2)
             lost = _silhouette(person) & (rng.random(person.shape) < 0.5)
             lost |= _patches(rng, person.shape)
             depth[lost | (seen <= 0)] = 0.0
