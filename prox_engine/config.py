@@ -114,6 +114,10 @@ class FitConfig:
     batch_size: int = 1
     flip: bool = False  # mirror Kinect images and depth (not keypoints) as PROX does
     sdf_dim: int = 256
+    # With depth frames, the scan's registration to the camera is refined from the pixels
+    # off the body (registration.py): a degree off moves a person standing on the scanned
+    # floor 10-15 cm in depth. `prox-given-registration` is the ablation.
+    refine_registration: bool = True
     # The body model (prox_engine.body.load_body): anny, or SMPL-X from the user's files.
     model: str = "anny"
     model_path: str | None = None  # folder with SMPLX_{NEUTRAL,MALE,FEMALE}.npz

@@ -1,4 +1,4 @@
-"""Depth input for SMPLify-D / PROX-D: body-mask points from a depth frame.
+"""Depth input: body-mask points for SMPLify-D / PROX-D, scene points to re-register the scan.
 
 ``recordings/<rec>/Depth/<frame>.png``: 16-bit depth in millimetres x 8 (PROX);
 ``BodyIndex/<frame>.png``: Kinect body index, 255 = background. Real PROX depth comes from
@@ -22,6 +22,7 @@ from .errors import InputError
 
 DEPTH_SCALE = 1.0 / 8000.0  # PNG value -> metres
 COLOR_SIZE = (1920, 1080)
+SILHOUETTE_PX = 3  # the body mask grows by this much before scene pixels are taken
 
 
 def _read(path: Path) -> np.ndarray:
@@ -34,9 +35,12 @@ def _read(path: Path) -> np.ndarray:
 
 def load_depth_points(depth_path: Path, mask_path: Path, camera: Camera, flip: bool,
                       max_points: int, seed: int = 0,
-                      depth_camera: DepthCamera | None = None) -> torch.Tensor:
-    """Colour-camera-frame points (N, 3) of the depth pixels inside the body mask, through
-    ``depth_camera`` when given, else with the depth registered to ``camera``."""
+                      depth_camera: DepthCamera | None = None, body: bool = True
+                      ) -> torch.Tensor:
+    """Colour-camera-frame points (N, 3) of the depth pixels inside the body mask (or, with
+    ``body=False``, of the scene: off the mask grown by SILHOUETTE_PX, where depth pixels
+    mix body and background), through ``depth_camera`` when given, else with the depth
+    registered to ``camera``."""
     depth = _read(depth_path).astype(np.float64) * DEPTH_SCALE
     mask = _read(mask_path)
     if mask.ndim == 3:
@@ -45,7 +49,11 @@ def load_depth_points(depth_path: Path, mask_path: Path, camera: Camera, flip: b
         raise InputError(mask_path, f"body mask {mask.shape} does not match depth {depth.shape}")
     if flip:
         depth, mask = depth[:, ::-1], mask[:, ::-1]
-    v, u = np.nonzero((mask != 255) & (depth > 0.1))
+    region = mask != 255
+    if not body:
+        grown = cv2.dilate(region.astype(np.uint8), np.ones((2 * SILHOUETTE_PX + 1,) * 2, np.uint8))
+        region = grown == 0
+    v, u = np.nonzero(region & (depth > 0.1))
     if len(u) > max_points:
         keep = np.random.default_rng(seed).choice(len(u), max_points, replace=False)
         u, v = u[keep], v[keep]

@@ -21,6 +21,7 @@ from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
 from .keypoints import BODY, BODY_25, load_keypoints
 from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, write_pickle
+from .registration import Registration, register_scan
 from .scene import Scene
 
 Progress = Callable[[int, int, str], None]
@@ -64,11 +65,19 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
         raise InputError(rec.keypoint_dir, "no *_keypoints.json files")
     camera = load_calibration(rec.calibration_path)
     depth_camera = (load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
-                    if config.uses("depth") and rec.depth_calibration_path else None)
+                    if (config.uses("depth") or config.refine_registration)
+                    and rec.depth_calibration_path else None)
     if on_stage:
         on_stage("scene")
     t0 = time.perf_counter()
-    scene = load_scene(rec, config.sdf_dim)
+    vertices, faces = load_scene_mesh(rec.scene_path)
+    cam2world = load_cam2world(rec.cam2world_path)
+    registration = Registration(cam2world, False, reason="off")
+    if config.refine_registration:
+        registration = register_scan(rec, names, cam2world, vertices, faces, camera,
+                                     depth_camera, config.flip)
+    scene = Scene.load(vertices, faces, registration.cam2world, rec.sdf_paths,
+                       dim=config.sdf_dim)
     scene_seconds = time.perf_counter() - t0
     fitter = Fitter(body, camera, config, scene, on_stage)
 
@@ -130,6 +139,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     quality.recording_flags(frames_summary, frame_times([f["frame"] for f in frames_summary]))
     summary = _summarise(recording, source or str(Path(base).absolute()), config, sequence,
                          frames_summary, failures, scene_seconds)
+    summary["registration"] = registration.summary()
     write_json(Path(out) / recording / "summary.json", summary)
     return RecordingResult(recording, summary, failures)
 

@@ -119,7 +119,9 @@ class Setting:
         import trimesh
 
         rec = Recording(Path(data), fit.summary["recording"])
-        cam2world = load_cam2world(rec.cam2world_path)
+        registered = fit.summary.get("registration", {}).get("cam2world")  # as fitted
+        cam2world = (np.asarray(registered, dtype=np.float64).reshape(4, 4) if registered
+                     else load_cam2world(rec.cam2world_path))
         runs = [("", fit)] + ([("baseline_", baseline)] if baseline else [])
         # One mesh in memory at a time: sequences are long.
         bounds = np.array([[np.inf] * 3, [-np.inf] * 3])
