@@ -79,6 +79,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
             print(f"skipped {frame}: {error}", file=sys.stderr)
         for event in result.summary["numerical_events"]:
             print(f"warning {event['frame']}: {event['event']}", file=sys.stderr)
+        registration = result.summary["registration"]
+        if registration["failed"]:
+            print(f"warning {name}: scan registration kept as given "
+                  f"({registration['reason']})", file=sys.stderr)
         if not result.summary["frames_fitted"]:
             print(f"error: {name}: no frame could be fitted", file=sys.stderr)
             failed = True

@@ -21,7 +21,7 @@ from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
 from .keypoints import BODY, BODY_25, load_keypoints
 from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, write_pickle
-from .registration import Registration, register_scan
+from .registration import OFF, Registration, register_scan
 from .scene import Scene
 
 Progress = Callable[[int, int, str], None]
@@ -72,7 +72,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     t0 = time.perf_counter()
     vertices, faces = load_scene_mesh(rec.scene_path)
     cam2world = load_cam2world(rec.cam2world_path)
-    registration = Registration(cam2world, False, reason="off")
+    registration = Registration(cam2world, False, reason=OFF)
     if config.refine_registration:
         registration = register_scan(rec, names, cam2world, vertices, faces, camera,
                                      depth_camera, config.flip)

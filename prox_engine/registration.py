@@ -30,6 +30,7 @@ DAMPING = 1e-3  # relative to the mean curvature: unconstrained directions stay 
 MAX_ROTATION_DEG = 5.0  # a larger correction means the room was not recognised
 MAX_SHIFT_M = 0.20
 MIN_INLIERS = 0.5  # share of the points within TUKEY_M of the scan after the correction
+OFF, NO_DEPTH = "off", "no depth frames"  # reasons for not trying, unlike failing
 
 
 @dataclass
@@ -44,8 +45,13 @@ class Registration:
     residual_after_m: float = 0.0
     reason: str = ""
 
+    @property
+    def failed(self) -> bool:
+        """Whether a refinement was tried and not kept (worth a warning)."""
+        return not self.refined and self.reason not in (OFF, NO_DEPTH)
+
     def summary(self) -> dict:
-        return {"refined": self.refined, "reason": self.reason,
+        return {"refined": self.refined, "reason": self.reason, "failed": self.failed,
                 "rotation_deg": round(self.rotation_deg, 3), "shift_m": round(self.shift_m, 4),
                 "inliers": round(self.inliers, 3),
                 "residual_before_m": round(self.residual_before_m, 4),
@@ -150,5 +156,5 @@ def register_scan(rec: Recording, frames: list[str], cam2world: np.ndarray,
             unreadable += 1
     if not points:
         return Registration(cam2world, False, reason="unreadable depth frames" if unreadable
-                            else "no depth frames")
+                            else NO_DEPTH)
     return refine_registration(vertices, faces, cam2world, np.concatenate(points))
