@@ -23,13 +23,13 @@ from .errors import InputError
 FRAMES = 3  # depth frames, spread over the recording (the person stands elsewhere in each)
 POINTS_PER_FRAME = 4000
 ITERATIONS = 30
-GATE_M = (0.20, 0.02)  # pairs farther apart, or further off the plane, get no weight;
-# the gate narrows over the first half of the steps, from beyond a degree at 5 m
-TUKEY_M = 0.02  # after: a point this far off the scan is clutter the scan lacks
+GATE_M = (0.20, 0.02)  # points farther off their face's plane get no weight; the gate
+# narrows over the first half of the steps, from beyond a degree at 5 m
+ON_SCAN_M = 0.02  # after: a point this far off the scan is clutter the scan lacks
 DAMPING = 1e-3  # relative to the mean curvature: unconstrained directions stay put
 MAX_ROTATION_DEG = 5.0  # a larger correction means the room was not recognised
 MAX_SHIFT_M = 0.20
-MIN_INLIERS = 0.5  # share of the points within TUKEY_M of the scan after the correction
+MIN_INLIERS = 0.5  # share of the points within ON_SCAN_M of the scan after the correction
 OFF, NO_DEPTH = "off", "no depth frames"  # reasons for not trying, unlike failing
 
 
@@ -59,46 +59,54 @@ class Registration:
                 "cam2world": np.round(self.cam2world, 6).tolist()}
 
 
-def _surface(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Face centres and unit normals of the scan (a scanner's faces are small and even)."""
-    triangles = vertices[faces]
-    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-    length = np.linalg.norm(normals, axis=1)
-    keep = length > 1e-12
-    return triangles[keep].mean(1), normals[keep] / length[keep, None]
+@dataclass
+class _Surface:
+    """The scan's faces as centres (a k-d tree), unit normals, and the distance within
+    which a point on a face has that face's centre (the 90th percentile of the faces'
+    centre-to-corner distances: a scanner's faces are small and even)."""
+    tree: cKDTree
+    centres: np.ndarray
+    normals: np.ndarray
+    radius: float
 
+    @classmethod
+    def of(cls, vertices: np.ndarray, faces: np.ndarray) -> _Surface:
+        triangles = np.asarray(vertices, np.float64)[np.asarray(faces)]
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        length = np.linalg.norm(normals, axis=1)
+        keep = length > 1e-12
+        triangles = triangles[keep]
+        centres = triangles.mean(1)
+        radius = float(np.percentile(np.linalg.norm(triangles - centres[:, None], axis=2), 90))
+        return cls(cKDTree(centres), centres, normals[keep] / length[keep, None], radius)
 
-def _residuals(tree: cKDTree, centres: np.ndarray, normals: np.ndarray, points: np.ndarray,
-               gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Point-to-plane residuals of ``points`` (world) to their nearest scan faces within
-    ``gate``: (residuals, normals, index of the points paired)."""
-    distance, index = tree.query(points, distance_upper_bound=gate)
-    paired = np.flatnonzero(np.isfinite(distance))
-    n = normals[index[paired]]
-    return ((points[paired] - centres[index[paired]]) * n).sum(1), n, paired
-
-
-def _robust_rms(residuals: np.ndarray) -> float:
-    inside = np.abs(residuals) < TUKEY_M
-    return float(np.sqrt((residuals[inside] ** 2).mean())) if inside.any() else np.inf
+    def residuals(self, points: np.ndarray, gate: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Point-to-plane residuals of ``points`` (world) to their nearest faces, for the
+        points within ``gate`` of a face: (residuals, normals, index of the points)."""
+        distance, index = self.tree.query(points, distance_upper_bound=gate + self.radius)
+        paired = np.flatnonzero(np.isfinite(distance))
+        n = self.normals[index[paired]]
+        r = ((points[paired] - self.centres[index[paired]]) * n).sum(1)
+        near = np.abs(r) < gate
+        return r[near], n[near], paired[near]
 
 
 def refine_registration(vertices: np.ndarray, faces: np.ndarray, cam2world: np.ndarray,
                         points_cam: np.ndarray) -> Registration:
     """Correct ``cam2world`` (4, 4) so that the depth frames' scene points ``points_cam``
     (N, 3, colour-camera frame) lie on the scan (``vertices``, ``faces``, world frame)."""
-    centres, normals = _surface(np.asarray(vertices, np.float64), np.asarray(faces))
-    tree = cKDTree(centres)
+    surface = _Surface.of(vertices, faces)
     points_cam = np.asarray(points_cam, np.float64)
     given = np.asarray(cam2world, np.float64)
     current = given.copy()
     for step in range(ITERATIONS):
         gate = GATE_M[0] + (GATE_M[1] - GATE_M[0]) * min(1.0, step / (ITERATIONS / 2))
         world = points_cam @ current[:3, :3].T + current[:3, 3]
-        r, n, paired = _residuals(tree, centres, normals, world, gate)
+        r, n, paired = surface.residuals(world, gate)
         if len(r) < 6:
             return Registration(given, False, reason="the depth frames do not see the scan")
-        weight = np.where(np.abs(r) < gate, (1 - (r / gate) ** 2) ** 2, 0.0)
+        weight = (1 - (r / gate) ** 2) ** 2  # Tukey's biweight
         centre = world[paired].mean(0)
         # r(x) ~ r + n . (w x (p - c) + t) for a small rotation w about c and a shift t
         jacobian = np.concatenate([np.cross(world[paired] - centre, n), n], 1)
@@ -111,16 +119,16 @@ def refine_registration(vertices: np.ndarray, faces: np.ndarray, cam2world: np.n
         current = update @ current
         if np.linalg.norm(x) < 1e-6:
             break
-    return _judge(tree, centres, normals, points_cam, given, current)
+    return _judge(surface, points_cam, given, current)
 
 
-def _judge(tree: cKDTree, centres: np.ndarray, normals: np.ndarray, points_cam: np.ndarray,
-           given: np.ndarray, refined: np.ndarray) -> Registration:
+def _judge(surface: _Surface, points_cam: np.ndarray, given: np.ndarray,
+           refined: np.ndarray) -> Registration:
     """Keep ``refined`` if it is a small correction that fits the points better."""
     def fit(cam2world: np.ndarray) -> tuple[float, float]:
         world = points_cam @ cam2world[:3, :3].T + cam2world[:3, 3]
-        r, _, _ = _residuals(tree, centres, normals, world, 2 * TUKEY_M)
-        return _robust_rms(r), float((np.abs(r) < TUKEY_M).sum() / len(points_cam))
+        r, _, _ = surface.residuals(world, ON_SCAN_M)
+        return float(np.sqrt((r ** 2).mean())) if len(r) else np.inf, len(r) / len(points_cam)
     (before, _), (after, inliers) = fit(given), fit(refined)
     change = refined @ np.linalg.inv(given)
     rotation = float(np.degrees(Rotation.from_matrix(change[:3, :3]).magnitude()))
