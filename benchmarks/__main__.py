@@ -27,7 +27,8 @@ SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
            "prox-no-support", "prox-no-visibility", "prox-one-start", "prox-start-by-data",
            "prox-no-arm-restarts", "prox-no-facing", "prox-no-upright",
-           "prox-scene-translates", "prox-given-registration", "prox", "prox-soft", "prox" + SEQUENCE,
+           "prox-scene-translates", "prox-given-registration", "prox-hard", "prox",
+           "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,
            "prox-no-refit" + SEQUENCE, "prox-rescaled" + SEQUENCE, "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}

@@ -90,9 +90,11 @@ class FitConfig:
     scene_stages_translate: bool = False
     # Depth (m) a body may sink into the scan before the penetration term pushes it out:
     # cushions and mattresses give 2-4 cm under a person, and a scan registered a
-    # centimetre or two off puts a correctly placed body that deep. Off by default (the
-    # paper's term); `prox-soft` sets 2 cm: more accurate, but more vertices end up more
-    # than 1 cm inside the scan.
+    # centimetre or two off puts a correctly placed body that deep. 0 here (the paper's
+    # term); `prox` sets 1 cm, what is left of a registration refined from depth (tuning
+    # seeds 0 / 8 / 16: 77.0 / 89.0 / 92.5 -> 72.8 / 83.0 / 92.3 mm, penetration 0.03 ->
+    # 0.16 %; `prox-hard` is the ablation); `prox-soft` sets 2 cm: 71.8 / 81.3 / 94.2 mm,
+    # but 0.6 % of the vertices end up more than 1 cm inside the scan.
     penetration_tolerance: float = 0.0
     # Every stage (as the joint limits): the trunk (mid-hip to neck) is drawn toward world
     # up, robustly, while within about upright_rho (radians) of it, barely beyond (a
