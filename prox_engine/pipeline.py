@@ -64,9 +64,14 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     if not names:
         raise InputError(rec.keypoint_dir, "no *_keypoints.json files")
     camera = load_calibration(rec.calibration_path)
-    depth_camera = (load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
-                    if (config.uses("depth") or config.refine_registration)
-                    and rec.depth_calibration_path else None)
+    depth_camera, depth_problem = None, ""
+    if rec.depth_calibration_path and (config.uses("depth") or config.refine_registration):
+        try:
+            depth_camera = load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
+        except InputError as exc:
+            if config.uses("depth"):
+                raise
+            depth_problem = f"unreadable depth calibration ({exc})"  # only registration needs it
     if on_stage:
         on_stage("scene")
     t0 = time.perf_counter()
@@ -74,8 +79,9 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     cam2world = load_cam2world(rec.cam2world_path)
     registration = Registration(cam2world, False, reason=OFF)
     if config.refine_registration:
-        registration = register_scan(rec, names, cam2world, vertices, faces, camera,
-                                     depth_camera, config.flip)
+        registration = (Registration(cam2world, False, reason=depth_problem) if depth_problem
+                        else register_scan(rec, names, cam2world, vertices, faces, camera,
+                                           depth_camera, config.flip))
     scene = Scene.load(vertices, faces, registration.cam2world, rec.sdf_paths,
                        dim=config.sdf_dim)
     scene_seconds = time.perf_counter() - t0

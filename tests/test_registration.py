@@ -131,17 +131,10 @@ def test_scene_points_leave_out_the_person_and_its_edge(tmp_path):
     assert not bool(inside.any())
 
 
-@pytest.mark.parametrize("config, degrees, refined", [("prox", 1.5, True),
-                                                      ("prox-given-registration", 1.5, False),
-                                                      ("prox", 20.0, False)])
-def test_a_fit_uses_the_scan_registered_from_its_depth_frames(sitting_data, tmp_path, body,
-                                                              config, degrees, refined):
-    """The sitting recording with Kinect depth frames (IR calibration a little off,
-    clutter, range error: benchmarks/kinect.py) and its cam2world written 1.5 degrees and
-    2 cm off: `prox fit` refines it to within half a degree (the calibration's error
-    remains), records it in summary.json and the report, and its ablation keeps the given
-    one. Written 20 degrees off, the room is not recognised: kept as given, with a
-    warning."""
+def _with_depth(sitting_data, tmp_path, body, degrees: float
+                ) -> tuple[object, np.ndarray, np.ndarray]:
+    """A copy of the sitting data with Kinect depth for its first frame and cam2world
+    written ``degrees`` (and 2 cm) off: (base, true cam2world, written cam2world)."""
     from benchmarks import kinect
 
     base = tmp_path / "data"
@@ -156,6 +149,38 @@ def test_a_fit_uses_the_scan_registered_from_its_depth_frames(sitting_data, tmp_
     kinect.write_depth(base, REC, frames[:1], body.faces.numpy(),
                        trimesh.load(base / "scenes" / "Synthetic.ply", process=False), true,
                        np.random.default_rng(1))
+    return base, true, given
+
+
+def test_a_broken_depth_calibration_costs_prox_only_the_registration(sitting_data, tmp_path,
+                                                                    body):
+    """prox reads IR.json only to re-register the scan: a broken one is a warning naming
+    the file, and the frame is fitted on the registration as given."""
+    base, _, given = _with_depth(sitting_data, tmp_path, body, 1.5)
+    (base / "calibration" / "IR.json").write_text('{"k": [0, 0, 0, 0, 0]}')
+
+    run = cli_fit(base, tmp_path / "out", coarse_config(tmp_path, "prox"), "--frames", "1")
+
+    assert run.returncode == 0, run.stderr
+    registration = json.loads((tmp_path / "out" / REC / "summary.json").read_text()
+                              )["registration"]
+    assert registration["failed"] and "IR.json" in registration["reason"]
+    assert "unreadable depth calibration" in run.stderr
+    assert np.allclose(registration["cam2world"], given, atol=1e-5)
+
+
+@pytest.mark.parametrize("config, degrees, refined", [("prox", 1.5, True),
+                                                      ("prox-given-registration", 1.5, False),
+                                                      ("prox", 20.0, False)])
+def test_a_fit_uses_the_scan_registered_from_its_depth_frames(sitting_data, tmp_path, body,
+                                                              config, degrees, refined):
+    """The sitting recording with Kinect depth frames (IR calibration a little off,
+    clutter, range error: benchmarks/kinect.py) and its cam2world written 1.5 degrees and
+    2 cm off: `prox fit` refines it to within half a degree (the calibration's error
+    remains), records it in summary.json and the report, and its ablation keeps the given
+    one. Written 20 degrees off, the room is not recognised: kept as given, with a
+    warning."""
+    base, true, given = _with_depth(sitting_data, tmp_path, body, degrees)
 
     run = cli_fit(base, tmp_path / "out", coarse_config(tmp_path, config), "--frames", "1")
 
