@@ -81,6 +81,7 @@ def clutter(scene: trimesh.Trimesh, people: np.ndarray, rng: np.random.Generator
     up = scene.face_normals[:, 2] > 0.95
     centres = scene.triangles_center
     floor = up & (centres[:, 2] < scene.bounds[0, 2] + 0.05)
+    # 0.35 m: half the largest box's diagonal
     clear = cKDTree(people[:, :2]).query(centres[:, :2])[0] > 0.5 + 0.35
     candidates = np.flatnonzero(floor & clear)
     boxes = []

@@ -51,8 +51,8 @@ def load_depth_points(depth_path: Path, mask_path: Path, camera: Camera, flip: b
         depth, mask = depth[:, ::-1], mask[:, ::-1]
     region = mask != 255
     if not body:
-        grown = cv2.dilate(region.astype(np.uint8), np.ones((2 * SILHOUETTE_PX + 1,) * 2, np.uint8))
-        region = grown == 0
+        kernel = np.ones((2 * SILHOUETTE_PX + 1,) * 2, np.uint8)
+        region = cv2.dilate(region.astype(np.uint8), kernel) == 0
     v, u = np.nonzero(region & (depth > 0.1))
     if len(u) > max_points:
         keep = np.random.default_rng(seed).choice(len(u), max_points, replace=False)

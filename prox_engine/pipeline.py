@@ -64,24 +64,16 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
     if not names:
         raise InputError(rec.keypoint_dir, "no *_keypoints.json files")
     camera = load_calibration(rec.calibration_path)
-    depth_camera, depth_problem = None, ""
-    if rec.depth_calibration_path and (config.uses("depth") or config.refine_registration):
-        try:
-            depth_camera = load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
-        except InputError as exc:
-            if config.uses("depth"):
-                raise
-            depth_problem = f"unreadable depth calibration ({exc})"  # only registration needs it
+    depth_camera = (load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
+                    if config.uses("depth") and rec.depth_calibration_path else None)
     if on_stage:
         on_stage("scene")
     t0 = time.perf_counter()
     vertices, faces = load_scene_mesh(rec.scene_path)
     cam2world = load_cam2world(rec.cam2world_path)
-    registration = Registration(cam2world, False, reason=OFF)
-    if config.refine_registration:
-        registration = (Registration(cam2world, False, reason=depth_problem) if depth_problem
-                        else register_scan(rec, names, cam2world, vertices, faces, camera,
-                                           depth_camera, config.flip))
+    registration = (register_scan(rec, names, cam2world, vertices, faces, camera, depth_camera,
+                                  config.flip)
+                    if config.refine_registration else Registration(cam2world, False, OFF))
     scene = Scene.load(vertices, faces, registration.cam2world, rec.sdf_paths,
                        dim=config.sdf_dim)
     scene_seconds = time.perf_counter() - t0

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .camera import Camera, DepthCamera
-from .dataset import Recording
+from .dataset import Recording, load_depth_camera
 from .depth import load_depth_points
 from .errors import InputError
 
@@ -38,12 +38,12 @@ class Registration:
     """The scan-to-camera registration used, and how it was corrected."""
     cam2world: np.ndarray
     refined: bool
+    reason: str = ""  # why not, when not refined
     rotation_deg: float = 0.0
     shift_m: float = 0.0
     inliers: float = 0.0
     residual_before_m: float = 0.0
     residual_after_m: float = 0.0
-    reason: str = ""
 
     @property
     def failed(self) -> bool:
@@ -150,7 +150,14 @@ def register_scan(rec: Recording, frames: list[str], cam2world: np.ndarray,
                   vertices: np.ndarray, faces: np.ndarray, camera: Camera,
                   depth_camera: DepthCamera | None, flip: bool) -> Registration:
     """``cam2world`` refined from the scene pixels of up to FRAMES of the recording's depth
-    frames (as given when it has none, or none can be read)."""
+    frames (as given when it has none, or none can be read), seen through ``depth_camera``
+    (default: the recording's own calibration, if any; only this step needs it then, so
+    an unreadable one leaves the registration as given)."""
+    if depth_camera is None and rec.depth_calibration_path:
+        try:
+            depth_camera = load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
+        except InputError as exc:
+            return Registration(cam2world, False, f"unreadable depth calibration ({exc})")
     picked = frames[::max(1, -(-len(frames) // FRAMES))]
     points, unreadable = [], 0
     for name in picked:
