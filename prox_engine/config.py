@@ -90,11 +90,11 @@ class FitConfig:
     scene_stages_translate: bool = False
     # Depth (m) a body may sink into the scan before the penetration term pushes it out:
     # cushions and mattresses give 2-4 cm under a person, and a scan registered a
-    # centimetre or two off puts a correctly placed body that deep. 0 here (the paper's
-    # term); `prox` sets 1 cm, what is left of a registration refined from depth (tuning
-    # seeds 0 / 8 / 16: 77.0 / 89.0 / 92.5 -> 72.8 / 83.0 / 92.3 mm, penetration 0.03 ->
-    # 0.16 %; `prox-hard` is the ablation); `prox-soft` sets 2 cm: 71.8 / 81.3 / 94.2 mm,
-    # but 0.6 % of the vertices end up more than 1 cm inside the scan.
+    # centimetre or two off puts a correctly placed body that deep. 0 (the paper's term)
+    # in `prox`. 1 cm (`prox-cushion`) gained on tuning seeds 0 / 8 / 16 (77.0 / 89.0 /
+    # 92.5 -> 72.8 / 83.0 / 92.3 mm) but not on held-out seeds 21 and 22 (1.2 mm better,
+    # 0.2 mm worse), where it raised the share of vertices more than 1 cm inside the true
+    # scan from 0.9 to 2.1 % and from 0.09 to 0.21 %; 2 cm is `prox-soft`.
     penetration_tolerance: float = 0.0
     # Every stage (as the joint limits): the trunk (mid-hip to neck) is drawn toward world
     # up, robustly, while within about upright_rho (radians) of it, barely beyond (a

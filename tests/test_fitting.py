@@ -530,12 +530,12 @@ def _standing_params(body, cam2world: np.ndarray) -> dict[str, torch.Tensor]:
 
 def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(body):
     """A standing body fitted exactly, under a tilted camera, whose scanned floor is
-    registered 3 cm too high (2 cm beyond prox's 1 cm tolerance): the scene stages keep it
-    where it stands (the scale search or the previous frame placed it along its camera
-    rays) and bend it out of the scan. Left free to translate it, the penetration term
-    shifts the whole body off its keypoints, and its joints end further from the truth."""
+    registered 2 cm too high: the scene stages keep it where it stands (the scale search
+    or the previous frame placed it along its camera rays) and bend it out of the scan.
+    Left free to translate it, the penetration term shifts the whole body 3-4 cm off its
+    keypoints, and its joints end further from the truth."""
     cam2world = tilted_camera()
-    floor = plane_mesh(size=8.0, z=0.03)
+    floor = plane_mesh(size=8.0, z=0.02)
     scene = Scene(floor.vertices, floor.faces, cam2world,
                   compute_sdf(floor.vertices, floor.faces, dim=64, padding=0.5),
                   sample_spacing=0.1)
@@ -553,7 +553,7 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
 
     moved, error = fit(translate=False)
     moved_free, error_free = fit(translate=True)
-    assert moved < 0.008 and moved_free > 0.02, (moved, moved_free)
+    assert moved < 0.005 and moved_free > 0.02, (moved, moved_free)
     assert error < error_free and error < 0.045, (error, error_free)
 
 
