@@ -91,10 +91,10 @@ class FitConfig:
     # Depth (m) a body may sink into the scan before the penetration term pushes it out:
     # cushions and mattresses give 2-4 cm under a person, and a scan registered a
     # centimetre or two off puts a correctly placed body that deep. 0 (the paper's term)
-    # in `prox`. 1 cm (`prox-cushion`) gained on tuning seeds 0 / 8 / 16 (77.0 / 89.0 /
-    # 92.5 -> 72.8 / 83.0 / 92.3 mm) but not on held-out seeds 21 and 22 (1.2 mm better,
-    # 0.2 mm worse), where it raised the share of vertices more than 1 cm inside the true
-    # scan from 0.9 to 2.1 % and from 0.09 to 0.21 %; 2 cm is `prox-soft`.
+    # in `prox`. 1 cm (`prox-cushion`) gained 3.5 mm on tuning seeds 0 / 8 / 16, but on
+    # held-out seeds 21, 22 and 23 only 1.2, -0.2 and 1.2 mm, while the share of vertices
+    # more than 1 cm inside the true scan rose 0.9 -> 2.1, 0.09 -> 0.21 and 0.04 -> 0.78 %;
+    # 2 cm is `prox-soft`.
     penetration_tolerance: float = 0.0
     # Every stage (as the joint limits): the trunk (mid-hip to neck) is drawn toward world
     # up, robustly, while within about upright_rho (radians) of it, barely beyond (a
