@@ -122,6 +122,38 @@ def test_phenotype_coefficients_are_annys(body):
     torch.testing.assert_close(grad_ours[:64], grad_theirs[:64], rtol=1e-4, atol=1e-4)
 
 
+def test_forward_kinematics_are_annys(body):
+    """The skeleton's matrix-product chain gives anny's own bone transforms and posed bone
+    poses ('local-bone'), values and gradients, for a batch of reshaped, posed bodies."""
+    from prox_engine.geometry import axis_angle_to_matrix
+
+    torch.manual_seed(4)
+    params = body.init_params(3, "sitting")
+    for name in ("global_orient", "body_pose", "hand_pose", "transl"):
+        params[name] = params[name] + torch.randn_like(params[name]) * 0.5
+    params["shape"] = params["shape"] + torch.randn_like(params["shape"])
+    leaves = {k: v.requires_grad_(True) for k, v in params.items()}
+    rest = body._rest(leaves["shape"], vertices=False)
+    delta = torch.eye(4).repeat(3, len(body.bone_labels), 1, 1)
+    delta[:, 0, :3, :3] = axis_angle_to_matrix(leaves["global_orient"])
+    delta[:, 0, :3, 3] = leaves["transl"]
+    delta[:, body.body_index, :3, :3] = axis_angle_to_matrix(leaves["body_pose"])
+    delta[:, body.hand_index, :3, :3] = axis_angle_to_matrix(leaves["hand_pose"])
+    theirs = body.model.get_bone_transforms(delta, rest["bone_poses"])
+    rotvecs = torch.cat([leaves["global_orient"][:, None], leaves["body_pose"],
+                         leaves["hand_pose"]], 1)
+    ours = body.skeleton(rotvecs, leaves["transl"], rest["bone_poses"], rest["offsets"])
+    weights = [torch.randn_like(t) for t in theirs]
+    grads = []
+    for result in (theirs, ours):
+        for mine, reference in zip(result, theirs):
+            torch.testing.assert_close(mine, reference, rtol=1e-5, atol=1e-5)
+        loss = sum((t * w).sum() for t, w in zip(result, weights))
+        grads.append(torch.autograd.grad(loss, list(leaves.values()), retain_graph=True))
+    for mine, reference in zip(grads[1], grads[0]):
+        torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-4)
+
+
 def test_loading_the_body_model_prints_nothing():
     """No warp device banner or CUDA warning at the head of every command and worker log
     (the warning comes from warp's C code, straight to file descriptor 2)."""

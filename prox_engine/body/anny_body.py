@@ -19,8 +19,9 @@ import roma
 import torch
 
 from .. import assets
-from ..geometry import axis_angle_to_matrix, vertex_normals
+from ..geometry import vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
+from .anny_kinematics import AnnySkeleton
 from .base import BodyModel, BodyOutput, Params
 
 SIDES = ("L", "R")
@@ -124,6 +125,7 @@ class AnnyBody(BodyModel):
         lo, hi = zip(*(_LIMITS[_limit_key(b)] for b in BODY_BONES))
         self.register_buffer("limit_lo", torch.tensor(lo, dtype=torch.float32))
         self.register_buffer("limit_hi", torch.tensor(hi, dtype=torch.float32))
+        self.skeleton = AnnySkeleton(model, torch.cat([self.body_index, self.hand_index]))
         self.register_buffer("flexion_index", torch.tensor(
             [BODY_BONES.index(f"{b}.{s}") for s in SIDES for b in ("lowerarm01", "lowerleg01")]))
 
@@ -351,15 +353,6 @@ class AnnyBody(BodyModel):
         return torch.tensor([0.0, -1.0, 0.0])
 
     # ----------------------------------------------------------------- forward
-    def _pose_matrices(self, params: Params) -> torch.Tensor:
-        batch = params["transl"].shape[0]
-        pose = torch.eye(4).repeat(batch, len(self.bone_labels), 1, 1)
-        pose[:, 0, :3, :3] = axis_angle_to_matrix(params["global_orient"])
-        pose[:, 0, :3, 3] = params["transl"]
-        pose[:, self.body_index, :3, :3] = axis_angle_to_matrix(params["body_pose"])
-        pose[:, self.hand_index, :3, :3] = axis_angle_to_matrix(params["hand_pose"])
-        return pose
-
     def _setup_phenotype_coefficients(self) -> None:
         """anny's phenotype blendshape coefficients as one gather and product: each of its
         blendshapes is the product of one variation weight per phenotype (a hat function
@@ -457,8 +450,9 @@ class AnnyBody(BodyModel):
                     "bc,ckij->bkij", coeffs, model.bone_orientation_blendshapes))
             if model.rest_orientation_refiner is not None:
                 orientation = model.rest_orientation_refiner(orientation, heads)
-            cached = {"shape": shape.detach().clone(), "coeffs": coeffs,
-                      "bone_poses": roma.Rigid(orientation, heads).to_homogeneous(),
+            poses = roma.Rigid(orientation, heads).to_homogeneous()
+            cached = {"shape": shape.detach().clone(), "coeffs": coeffs, "bone_poses": poses,
+                      "offsets": self.skeleton.offsets(poses),
                       "anchors": self.anchor_template + torch.einsum(
                           "bc,cpd->bpd", coeffs, self.anchor_blendshapes)}
             if frozen:
@@ -470,9 +464,11 @@ class AnnyBody(BodyModel):
 
     def forward(self, params: Params, vertices: bool = True) -> BodyOutput:
         rest = self._rest(params["shape"], vertices)
-        pose = self._pose_matrices(params)
-        batch = pose.shape[0]
-        transforms, bone_poses = self.model.get_bone_transforms(pose, rest["bone_poses"])
+        rotvecs = torch.cat([params["global_orient"][:, None], params["body_pose"],
+                             params["hand_pose"]], 1)
+        batch = len(rotvecs)
+        transforms, bone_poses = self.skeleton(rotvecs, params["transl"], rest["bone_poses"],
+                                               rest["offsets"])
         skinned = None
         if vertices:
             skinned = self.model.get_skinned_vertices(

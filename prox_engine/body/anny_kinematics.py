@@ -1,0 +1,71 @@
+"""Forward kinematics of anny's skeleton for the fitted rotations, as batched 3x3 and 4x4
+matrix products: anny's own (``get_bone_transforms``, 'local-bone') builds every bone's 4x4
+delta matrix and multiplies by broadcast sums, about twice the operations, which on a CPU
+cost more than the arithmetic (a body evaluation is thousands of tiny operations).
+
+In anny's notation (``anny.utils.kinematics.forward_kinematic``): bone c of parent p has
+rest pose P_c = [R_c | h_c], fixed reference orientation U_c and fitted rotation D_c.
+Its posed pose is W_c = W_p K_c with K_c = [U_p^T U_c D_c | R_p^T (h_c - h_p)] (the root's
+children: [.. | U_0^T (h_c - h_0)]), W_0 = [D_0 | transl], and its skinning transform is
+T_c = W_c P_c^-1.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..geometry import axis_angle_to_matrix
+
+
+class AnnySkeleton(torch.nn.Module):
+    """The bone chain of an anny model whose rotations are the root, ``posed`` bones (in
+    the order their axis-angles come) and identity for the rest."""
+
+    def __init__(self, model: torch.nn.Module, posed: torch.Tensor) -> None:
+        super().__init__()
+        self.levels = model.kinematic_chain_levels  # (first, last) of each depth level
+        local, order, inverse, parent = model.kinematic_chain_indices
+        count = len(order)
+        reference = model.reference_bone_orientations
+        slot = torch.full((count,), 1 + len(posed), dtype=torch.long)  # identity
+        slot[0] = 0
+        slot[posed] = 1 + torch.arange(len(posed))
+        self.register_buffer("local", local)  # parent's position in the level before
+        self.register_buffer("order", order)  # bones in depth order
+        self.register_buffer("inverse", inverse)
+        self.register_buffer("parent", parent)
+        self.register_buffer("slot", slot[order])  # each bone's rotation, depth order
+        self.register_buffer("turn", (reference[parent].transpose(-1, -2)
+                                      @ reference)[order])  # U_p^T U_c
+        self.register_buffer("root_reference", reference[0])
+        self.register_buffer("bottom", torch.tensor([0.0, 0.0, 0.0, 1.0]))
+
+    def offsets(self, rest_poses: torch.Tensor) -> torch.Tensor:
+        """(B, J, 3) each bone's head from its parent's in the parent's frame, depth order;
+        depends on the shape only."""
+        rotation, head = rest_poses[..., :3, :3], rest_poses[..., :3, 3]
+        step = (head - head[:, self.parent])[..., None]
+        offset = torch.where((self.parent == 0)[:, None, None], self.root_reference.T @ step,
+                             rotation[:, self.parent].transpose(-1, -2) @ step)[..., 0]
+        return offset[:, self.order]
+
+    def forward(self, rotvecs: torch.Tensor, transl: torch.Tensor, rest_poses: torch.Tensor,
+                offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Skinning transforms T and posed poses W (B, J, 4, 4) for axis-angles ``rotvecs``
+        (B, 1 + len(posed), 3), the root's first, the root at ``transl`` (B, 3);
+        ``offsets`` from :meth:`offsets` of ``rest_poses`` (B or 1, J, 4, 4)."""
+        batch = len(rotvecs)
+        rotations = axis_angle_to_matrix(rotvecs)
+        rotations = torch.cat([rotations, torch.eye(3).expand(batch, 1, 3, 3)], 1)[:, self.slot]
+        offsets = offsets.expand(batch, -1, -1)
+        bottom = self.bottom.expand(batch, len(self.slot), 1, 4)
+        step = torch.cat([torch.cat([self.turn @ rotations, offsets[..., None]], -1), bottom], -2)
+        root = torch.cat([rotations[:, 0], transl[:, :, None]], -1)
+        chain = [torch.cat([root, bottom[:, 0]], -2)[:, None]]
+        for first, last in self.levels[1:]:
+            chain.append(chain[-1][:, self.local[first:last]] @ step[:, first:last])
+        poses = torch.cat(chain, 1)[:, self.inverse]
+        rest_rotation, rest_head = rest_poses[..., :3, :3], rest_poses[..., :3, 3]
+        rotation = poses[..., :3, :3] @ rest_rotation.transpose(-1, -2)
+        shift = poses[..., :3, 3] - (rotation @ rest_head[..., None])[..., 0]
+        transforms = torch.cat([torch.cat([rotation, shift[..., None]], -1), bottom], -2)
+        return transforms, poses
