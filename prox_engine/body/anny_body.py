@@ -155,7 +155,7 @@ class AnnyBody(BodyModel):
         self._rest_cache: dict[str, torch.Tensor] | None = None
         self._setup_phenotype_coefficients()
         self._setup_static_geometry()
-        self._setup_keypoint_anchors()
+        self._setup_rest_basis(*self._setup_keypoint_anchors())
 
     @classmethod
     def load(cls, age_years: float = ADULT_AGE_YEARS) -> "AnnyBody":
@@ -408,12 +408,13 @@ class AnnyBody(BodyModel):
         weight = torch.cat([weight, weight.new_ones(len(weight), 1)], 1)
         return weight[:, self.phenotype_index].prod(-1) @ self.phenotype_projection
 
-    def _setup_keypoint_anchors(self) -> None:
+    def _setup_keypoint_anchors(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The body keypoints and fingertips without skinning the mesh. A skinned vertex is
         sum_j w_vj T_j [x_v; 1], so a keypoint that is a weighted sum of vertices is
         sum_j T_j [a_kj; h_kj] with a_kj = sum_v W_kv w_vj x_v and h_kj = sum_v W_kv w_vj:
         one anchor per (keypoint, bone) pair that shares a vertex (a few hundred), linear in
-        the shape's blendshape coefficients like the vertices themselves."""
+        the shape's blendshape coefficients like the vertices themselves. Returns the
+        anchors a at coefficients 0 (pairs, 3) and their blendshapes (C, pairs, 3)."""
         model = self.model
         count = len(model.template_vertices)
         weights = torch.cat([self.keypoint_weights, torch.zeros(len(self.fingertips), count)])
@@ -430,9 +431,21 @@ class AnnyBody(BodyModel):
         self.register_buffer("anchor_point", pairs // len(self.bone_labels))
         self.register_buffer("anchor_bone", pairs % len(self.bone_labels))
         self.register_buffer("anchor_weight", mix.sum(1))  # h
-        self.register_buffer("anchor_template", mix @ model.template_vertices)  # a at coeffs 0
-        self.register_buffer("anchor_blendshapes", torch.einsum(  # (C, pairs, 3)
-            "pv,cvd->cpd", mix, model.blendshapes))
+        return mix @ model.template_vertices, torch.einsum("pv,cvd->cpd", mix, model.blendshapes)
+
+    def _setup_rest_basis(self, anchors: torch.Tensor, anchor_blendshapes: torch.Tensor
+                          ) -> None:
+        """Bone heads, bone orientations (before anny's Procrustes) and keypoint anchors
+        are each linear in the blendshape coefficients: one matrix for the three, so a
+        shape costs one product (anny's three einsums cost 3x as much)."""
+        model = self.model
+        parts = [(model.template_bone_heads, model.bone_heads_blendshapes),
+                 (model.bone_template_orientation_matrices, model.bone_orientation_blendshapes),
+                 (anchors, anchor_blendshapes)]
+        self.rest_sizes = [template.numel() for template, _ in parts]
+        self.register_buffer("rest_template", torch.cat([t.reshape(-1) for t, _ in parts]))
+        self.register_buffer("rest_basis", torch.cat([b.reshape(len(b), -1) for _, b in parts],
+                                                     1))
 
     def _rest(self, shape: torch.Tensor, vertices: bool) -> dict[str, torch.Tensor]:
         """Rest bone poses, keypoint anchors and (with ``vertices``) rest vertices for shape
@@ -443,18 +456,16 @@ class AnnyBody(BodyModel):
         if not (frozen and cached is not None and torch.equal(cached["shape"], shape)):
             model = self.model
             coeffs = self.phenotype_coefficients(torch.sigmoid(shape))
-            heads = model.template_bone_heads + torch.einsum(
-                "bc,ckd->bkd", coeffs, model.bone_heads_blendshapes)
-            orientation = roma.special_procrustes(
-                model.bone_template_orientation_matrices + torch.einsum(
-                    "bc,ckij->bkij", coeffs, model.bone_orientation_blendshapes))
+            heads, orientation, anchors = (self.rest_template + coeffs @ self.rest_basis).split(
+                self.rest_sizes, 1)
+            heads = heads.view(len(coeffs), -1, 3)
+            orientation = roma.special_procrustes(orientation.view(len(coeffs), -1, 3, 3))
             if model.rest_orientation_refiner is not None:
                 orientation = model.rest_orientation_refiner(orientation, heads)
             poses = roma.Rigid(orientation, heads).to_homogeneous()
             cached = {"shape": shape.detach().clone(), "coeffs": coeffs, "bone_poses": poses,
                       "offsets": self.skeleton.offsets(poses),
-                      "anchors": self.anchor_template + torch.einsum(
-                          "bc,cpd->bpd", coeffs, self.anchor_blendshapes)}
+                      "anchors": anchors.view(len(coeffs), -1, 3)}
             if frozen:
                 self._rest_cache = cached
         if vertices and "vertices" not in cached:
