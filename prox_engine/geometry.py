@@ -60,10 +60,18 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Area-weighted unit vertex normals, (B, V, 3) for (B, V, 3) vertices."""
     tri = vertices[:, faces]  # B, F, 3, 3
     n = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
-    out = torch.zeros_like(vertices)
-    for k in range(3):
-        out = out.index_add(1, faces[:, k], n)
+    out = _sum_into(n.repeat(1, 3, 1), faces.T.reshape(-1), vertices.shape[1])
     return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def _sum_into(values: torch.Tensor, slots: torch.Tensor, count: int) -> torch.Tensor:
+    """(B, count, 3): each batch element's ``values`` (B, N, 3) summed into their ``slots``
+    (N,). One index_add over the flattened batch: along dimension 1 of a 3-D tensor torch
+    takes a path 4-5x slower on a CPU."""
+    batch = len(values)
+    flat = (torch.arange(batch)[:, None] * count + slots).reshape(-1)
+    return values.new_zeros(batch * count, 3).index_add_(
+        0, flat, values.reshape(-1, 3)).view(batch, count, 3)
 
 
 class VertexNormals:
@@ -87,8 +95,7 @@ class VertexNormals:
         """(B, len(ids), 3) normals of (B, V, 3) vertices."""
         tri = vertices[:, self._faces]
         n = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
-        out = n.new_zeros(len(vertices), self._count, 3).index_add_(
-            1, self._corner_slot, n[:, self._corner_face])[:, self._order]
+        out = _sum_into(n[:, self._corner_face], self._corner_slot, self._count)[:, self._order]
         return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 

@@ -156,7 +156,8 @@ def test_penetration_inside_a_slab_thinner_than_a_voxel_pushes_out():
 
 def test_contact_normals_of_a_vertex_set_are_the_mesh_normals(body):
     """The contact term's normals, from the faces around the contact vertices only, are
-    the whole mesh's vertex normals at those vertices (repeated vertices included)."""
+    the whole mesh's area-weighted vertex normals at those vertices (repeated vertices
+    included), each body of a batch its own."""
     from prox_engine.geometry import VertexNormals, vertex_normals
 
     params = body.init_params(2, "sitting")
@@ -164,7 +165,17 @@ def test_contact_normals_of_a_vertex_set_are_the_mesh_normals(body):
     vertices = body(params).vertices
     ids = torch.cat([body.contact_parts["gluteus"], body.contact_parts["left_hand"],
                      body.contact_parts["gluteus"][:5]])
-    expected = vertex_normals(vertices, body.faces)[:, ids]
+    normals = vertex_normals(vertices, body.faces)
+    faces = body.faces.numpy()
+    for b in range(2):  # each body's own area-weighted normals, summed face by face
+        corners = vertices[b].numpy()[faces]
+        areas = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        summed = np.zeros((len(vertices[b]), 3))
+        for k in range(3):
+            np.add.at(summed, faces[:, k], areas)
+        summed /= np.linalg.norm(summed, axis=1, keepdims=True)
+        assert np.allclose(normals[b].numpy(), summed, atol=1e-5)
+    expected = normals[:, ids]
     assert torch.allclose(VertexNormals(body.faces, ids)(vertices), expected, atol=1e-5)
 
 
