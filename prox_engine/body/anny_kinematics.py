@@ -51,8 +51,9 @@ class AnnySkeleton(torch.nn.Module):
     def forward(self, rotvecs: torch.Tensor, transl: torch.Tensor, rest_poses: torch.Tensor,
                 offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Skinning transforms T and posed poses W (B, J, 4, 4) for axis-angles ``rotvecs``
-        (B, 1 + len(posed), 3), the root's first, the root at ``transl`` (B, 3);
-        ``offsets`` from :meth:`offsets` of ``rest_poses`` (B or 1, J, 4, 4)."""
+        (B, 1 + len(posed), 3), the root's first, the root at ``transl`` (B, 3), of the
+        body whose rest poses are ``rest_poses`` (B or 1, J, 4, 4), with their
+        :meth:`offsets`."""
         batch = len(rotvecs)
         rotations = axis_angle_to_matrix(rotvecs)
         rotations = torch.cat([rotations, torch.eye(3).expand(batch, 1, 3, 3)], 1)[:, self.slot]
