@@ -71,6 +71,10 @@ class FitConfig:
     # up to this (px^2): the turned-away body with its sides swapped explains the same
     # keypoints, and without the face nothing tells the two apart.
     facing_cost: float = 5000.0
+    # Where the detector sees no ankle (legs cut off or hidden), the second start is the
+    # best whose thighs differ from the best's (bent forward or along the trunk): the
+    # keypoints cannot tell sitting from standing there, the scene can.
+    start_other_thighs: bool = False
     # After the start choice, each frame's arms are also restarted held forward (one or
     # both), fitted side by side through the next stage, and the lowest objective is kept:
     # an arm seen from the front projects alike pointing forward or back.

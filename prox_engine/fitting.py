@@ -398,7 +398,8 @@ class Fitter:
                                     self.config.data_rho, self.config.init_depth_weight,
                                     [side_swap(label) for label in labellings],
                                     events=self.events, keep=self.config.start_candidates,
-                                    facing_cost=self.config.facing_cost)
+                                    facing_cost=self.config.facing_cost,
+                                    other_thighs=self.config.start_other_thighs)
         return params, [labellings[int(c)] for c in chosen]
 
     def _closest_labelling(self, target: torch.Tensor, conf: torch.Tensor,

@@ -23,7 +23,7 @@ from . import lbfgs
 from .body.base import BodyModel, Params
 from .camera import Camera
 from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
-from .keypoints import BODY, TORSO_EDGES
+from .keypoints import ANKLES, BODY, TORSO_EDGES
 from .losses import gmof
 
 TORSO = [1, 2, 5, 8, 9, 12]  # neck, shoulders, mid-hip, hips: nearly rigid in any posture
@@ -92,15 +92,17 @@ def candidates(body: BodyModel, up: torch.Tensor) -> Candidates:
 def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torch.Tensor,
                up: torch.Tensor, rho: float, depth_weight: float,
                labellings: Sequence[list[int]] = (), max_iter: int = 30,
-               events: list[str] | None = None, keep: int = 1, facing_cost: float = 0.0
-               ) -> tuple[Params, torch.Tensor]:
+               events: list[str] | None = None, keep: int = 1, facing_cost: float = 0.0,
+               other_thighs: bool = False) -> tuple[Params, torch.Tensor]:
     """Parameters of the ``keep`` best distinct rigidly fitted candidates of each frame
     (B * keep rows, frame-major, best first; see :func:`_distinct`), and which of
     ``labellings`` (row orders of the keypoints, e.g. with the legs' sides exchanged; none:
     the keypoints as given) each explains the keypoints under, (B * keep,). ``target``
     (B, K, 2) pixels and ``conf`` (B, K) the detector's confidences. Where the detector
     sees the face, a start turned away from the camera costs up to ``facing_cost`` (as
-    many px^2 of reprojection error)."""
+    many px^2 of reprojection error). With ``other_thighs``, in a frame where the
+    detector sees no ankle, the second start is the best whose thighs differ from the
+    best's (see :func:`_distinct`)."""
     orders = list(labellings) or [list(range(target.shape[1]))]
     frames, views = target.shape[0], len(orders)
     # Every frame under every labelling: (B, L) flattened to B * L "frames" below.
@@ -115,6 +117,7 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         with torch.no_grad():
             rest[name] = (body(params).keypoints[0, BODY], body.root_pivot(params)[0])
     kp0 = torch.stack([rest[p][0] for p in cands.postures])  # (C, 25, 3)
+    seated = [_thighs_forward(rest[p][0]) for p in cands.postures]
     pivot = torch.stack([rest[p][1] for p in cands.postures])  # (C, 3)
     count = len(cands.postures)
 
@@ -178,7 +181,9 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         chosen, starts = [], []
         for b in range(frames):
             rows = rotation.view(frames, -1, 3, 3)[b]
-            for pick in _distinct(score[b], rows, cands.postures, keep):
+            legs_guessed = other_thighs and not bool((conf[b * views, ANKLES] > 0).any())
+            for pick in _distinct(score[b], rows, cands.postures, keep,
+                                  seated if legs_guessed else None):
                 n = b * views * count + pick  # row of (frame, labelling, candidate)
                 c = pick % count
                 params = body.init_params(1, cands.postures[c])
@@ -190,26 +195,45 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     return ({k: torch.cat([p[k] for p in starts]) for k in starts[0]}, torch.tensor(chosen))
 
 
-def _distinct(score: torch.Tensor, rotation: torch.Tensor, postures: list[str], keep: int
-              ) -> list[int]:
+def _distinct(score: torch.Tensor, rotation: torch.Tensor, postures: list[str], keep: int,
+              seated: list[bool] | None = None) -> list[int]:
     """Indices of the ``keep`` best of one frame's scored (labelling, candidate) rows that
     differ from every better one kept in labelling, posture, or by more than
     DISTINCT_TURN in root rotation (the rigid fits of neighbouring candidates often end
-    together); the best repeated when fewer are distinct."""
+    together); the best repeated when fewer are distinct. Given ``seated`` (per
+    candidate: thighs bent forward from the trunk), the second is the best whose thighs
+    differ from the best's: with the legs unseen the keypoints cannot tell a seated body
+    from a standing one, the scene can."""
     count = len(postures)
+    order = score.argsort().tolist()
+    if seated is not None and keep > 1 and math.isfinite(float(score[order[0]])):
+        other = [i for i in order if seated[i % count] != seated[order[0] % count]
+                 and math.isfinite(float(score[i]))]
+        if other:
+            order = [order[0], other[0]] + [i for i in order[1:] if i != other[0]]
 
     def same(i: int, j: int) -> bool:
         return (i // count == j // count and postures[i % count] == postures[j % count]
                 and _turn(rotation[i], rotation[j]) < DISTINCT_TURN)
 
     picked: list[int] = []
-    for i in score.argsort().tolist():
+    for i in order:
         if len(picked) == keep or not math.isfinite(float(score[i])):
             break
         if not any(same(i, j) for j in picked):
             picked.append(i)
     picked = picked or [int(score.argmin())]
     return picked + picked[:1] * (keep - len(picked))
+
+
+def _thighs_forward(keypoints: torch.Tensor) -> bool:
+    """Whether a posture's thighs (hip to knee, BODY_25 ``keypoints`` (25, 3)) bend
+    forward from its trunk (mid-hip to neck) by more than 45 degrees: sitting and
+    crouching, not standing, kneeling or lying."""
+    trunk = keypoints[1] - keypoints[8]
+    thighs = keypoints[[10, 13]] - keypoints[[9, 12]]
+    cos = (thighs @ trunk) / (thighs.norm(dim=1) * trunk.norm())
+    return bool(cos.mean() > -math.cos(math.radians(45)))
 
 
 def _turn(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -284,6 +284,31 @@ def test_several_starts_per_frame_are_distinct_best_first(body):
                             or not torch.equal(starts["body_pose"][i], starts["body_pose"][j]))
 
 
+def test_with_the_legs_unseen_the_second_start_has_the_other_thighs(body):
+    """A standing person cut off above the knees: the keypoints cannot tell standing from
+    sitting, so the two starts kept are the best (standing) and the best seated one, for
+    the scene to choose between; seen whole, the second start is another standing one."""
+    from prox_engine.initialisation import _thighs_forward
+
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    whole = frame_of(standing_person(body, cam2world, 0.0)[1])
+    cut = frame_of(standing_person(body, cam2world, 0.0)[1])
+    cut.keypoints.data[[10, 11, 13, 14, 19, 20, 21, 22, 23, 24], 2] = 0.0  # knees, feet
+    config = load_config("prox")
+
+    def seated(frame: Frame, other_thighs: bool) -> list[bool]:
+        config.start_other_thighs = other_thighs
+        starts, _ = Fitter(body, CAMERA, config, scene).initialise([frame])
+        with torch.no_grad():
+            posed = body(starts, vertices=False).keypoints[:, :25]
+        return [_thighs_forward(k) for k in posed]
+
+    assert seated(cut, True) == [False, True]
+    assert seated(cut, False) == [False, False]
+    assert seated(whole, True) == [False, False]
+
+
 def test_several_starts_keep_each_frame_its_own_body(body):
     """Fitting two frames of different people with three starts each returns each frame
     a body that projects onto its own keypoints (no rows mixed between frames)."""
