@@ -16,8 +16,8 @@ from .body.base import BodyModel, BodyOutput, Params
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, vertex_normals
-from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
-                        Keypoints, side_swap)
+from .keypoints import (BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, Keypoints,
+                        ankle_seen, side_swap)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices
 from .scene import Scene
@@ -265,8 +265,7 @@ class Fitter:
             if w.get(name, 0) > 0:
                 terms[name] = w[name] ** (2 if cfg.squared_priors else 1) * prior(params)
         if cfg.upright_weight > 0:
-            legs_seen = (conf[:, ANKLES] > 0).any(1)
-            terms["upright"] = cfg.upright_weight * legs_seen * losses.upright(
+            terms["upright"] = cfg.upright_weight * ankle_seen(conf) * losses.upright(
                 out, self.up, cfg.upright_rho)
         if w.get("self_penetration", 0) > 0:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)

@@ -23,7 +23,7 @@ from . import lbfgs
 from .body.base import BodyModel, Params
 from .camera import Camera
 from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
-from .keypoints import ANKLES, BODY, TORSO_EDGES
+from .keypoints import BODY, TORSO_EDGES, ankle_seen
 from .losses import gmof
 
 TORSO = [1, 2, 5, 8, 9, 12]  # neck, shoulders, mid-hip, hips: nearly rigid in any posture
@@ -117,7 +117,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         with torch.no_grad():
             rest[name] = (body(params).keypoints[0, BODY], body.root_pivot(params)[0])
     kp0 = torch.stack([rest[p][0] for p in cands.postures])  # (C, 25, 3)
-    seated = [_thighs_forward(rest[p][0]) for p in cands.postures]
+    thighs = {name: _thighs_forward(rest[name][0]) for name in names}
+    seated = [thighs[p] for p in cands.postures]
     pivot = torch.stack([rest[p][1] for p in cands.postures])  # (C, 3)
     count = len(cands.postures)
 
@@ -181,7 +182,7 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         chosen, starts = [], []
         for b in range(frames):
             rows = rotation.view(frames, -1, 3, 3)[b]
-            legs_guessed = other_thighs and not bool((conf[b * views, ANKLES] > 0).any())
+            legs_guessed = other_thighs and not bool(ankle_seen(conf[b * views]))
             for pick in _distinct(score[b], rows, cands.postures, keep,
                                   seated if legs_guessed else None):
                 n = b * views * count + pick  # row of (frame, labelling, candidate)

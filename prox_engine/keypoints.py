@@ -4,10 +4,14 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError
+
+if TYPE_CHECKING:  # the service parses keypoints without importing torch
+    import torch
 
 BODY_25 = [
     "nose", "neck", "right_shoulder", "right_elbow", "right_wrist", "left_shoulder",
@@ -147,3 +151,10 @@ def load_keypoints(path: Path) -> Keypoints:
     if best.confidence[BODY].sum() <= 0:
         raise InputError(path, "all body keypoints have zero confidence")
     return best
+
+
+def ankle_seen(conf: torch.Tensor) -> torch.Tensor:
+    """(...,) whether the detector reported either ankle, from confidences (..., K) (a
+    tensor or an array): a frame cut off at the knees has neither, and its legs' posture
+    is a guess."""
+    return (conf[..., ANKLES] > 0).any(-1)
