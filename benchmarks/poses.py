@@ -154,6 +154,62 @@ def reach(phase: float, twist: float, hip: float) -> Pose:
     return pose
 
 
+def kneel(phase: float, lean: float) -> Pose:
+    """On both knees, the shins flat on the floor and the toes pointed behind, the trunk
+    leaning forward by ``lean`` from the hips, both palms down on a low table in front."""
+    s = float(np.sin(phase))
+    return {
+        **_mirror("upperleg01", [-0.1 - lean / 2, 0.0, 0.0]),
+        **_mirror("lowerleg01", [1.67 + lean / 2, 0.0, 0.0]), **_mirror("foot", [0.9, 0.0, 0.0]),
+        **{bone: [lean / 3, 0.0, 0.0] for bone in ("spine03", "spine02", "spine01")},
+        **_mirror("upperarm01", [0.6, 0.0, -0.3]), **_mirror("lowerarm02", [0.0, 0.6, 0.0]),
+        **_mirror("wrist", [1.1, 0.0, 0.0]),
+        "neck01": [0.1 * s, 0.0, 0.0], "head": [0.0, 0.25 * s, 0.0],
+    }
+
+
+def squat(phase: float, lean: float) -> Pose:
+    """Squatting on flat feet, knees apart, the trunk leaning forward by ``lean``, both
+    palms down on a low box in front."""
+    s = float(np.sin(phase))
+    return {
+        **_mirror("upperleg01", [-2.1, 0.0, -0.15]), **_mirror("lowerleg01", [2.4, 0.0, 0.0]),
+        **_mirror("foot", [-0.3, 0.0, 0.0]),
+        **{bone: [lean / 3, 0.0, 0.0] for bone in ("spine03", "spine02", "spine01")},
+        **_mirror("upperarm01", [0.9, 0.0, -0.3]), **_mirror("lowerarm01", [0.2, 0.0, 0.0]),
+        **_mirror("lowerarm02", [0.0, 0.6, 0.0]), **_mirror("wrist", [1.1, 0.0, 0.0]),
+        "neck01": [-0.2 + 0.1 * s, 0.0, 0.0], "head": [0.0, 0.25 * s, 0.0],
+    }
+
+
+def one_knee(phase: float, front: float, back: float) -> Pose:
+    """On the right knee (its thigh ``back`` behind vertical, the shin flat on the floor),
+    the left foot flat in front (hip flexed by ``front``, the shin upright), the left
+    forearm held forward, the right arm hanging."""
+    s = float(np.sin(phase))
+    return {
+        "upperleg01.L": [-front, 0.0, -0.1], "lowerleg01.L": [front, 0.0, 0.0],
+        "upperleg01.R": [back, 0.0, 0.05], "lowerleg01.R": [np.pi / 2 - back, 0.0, 0.0],
+        "foot.R": [0.9, 0.0, 0.0],
+        "upperarm01.L": [0.5 + 0.1 * s, 0.0, -0.3], "lowerarm01.L": [1.0, 0.0, 0.0],
+        "upperarm01.R": [0.1, 0.0, 0.6], "lowerarm01.R": [0.3 + 0.2 * s, 0.0, 0.0],
+        "head": [0.1 * s, 0.2 * s, 0.0],
+    }
+
+
+def front_knee_hip(body: AnnyBody, phenotype: dict[str, float], back: float) -> float:
+    """The front hip flexion of :func:`one_knee` at which the front sole is as low as the
+    back knee, so that both rest on the floor (it depends on the legs' proportions)."""
+    parts = np.asarray(body.vertex_parts)
+    sole, knee = parts == "left_foot", np.isin(parts, ["right_thigh", "right_shin"])
+
+    def gap(front: float) -> float:
+        verts = posed(body, [one_knee(0.0, front, back)], phenotype)[0][0]
+        return float(verts[sole, 2].min() - verts[knee, 2].min())
+
+    return float(min(np.linspace(1.5, 1.9, 9), key=lambda front: abs(gap(front))))
+
+
 def walk(phase: float, swing: float) -> Pose:
     """One instant of a gait cycle (``phase``), legs swinging by ``swing``, arms in
     counter-phase."""

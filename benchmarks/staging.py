@@ -172,8 +172,37 @@ def stage_wall(body: AnnyBody, phenotype: dict[str, float], frames: int,
     return Staging(verts, kps, [wall], FEET)
 
 
+KNEELING = ("knees", "squat", "one knee")
+
+
+def stage_kneel(body: AnnyBody, phenotype: dict[str, float], frames: int,
+                rng: np.random.Generator) -> Staging:
+    """On the floor: one of the :data:`KNEELING` variants, drawn."""
+    return kneeling(body, phenotype, frames, rng, str(rng.choice(KNEELING)))
+
+
+def kneeling(body: AnnyBody, phenotype: dict[str, float], frames: int,
+             rng: np.random.Generator, variant: str) -> Staging:
+    """Kneeling on both knees with the palms on a low table, squatting on flat feet with
+    the palms on a low table, or down on one knee with nothing else touched."""
+    if variant == "one knee":
+        back = rng.uniform(0.0, 0.15)
+        front = poses.front_knee_hip(body, phenotype, back)
+        verts, kps, _ = to_floor(*posed(body, [poses.one_knee(p, front, back)
+                                               for p in phases(frames, rng)], phenotype))
+        return Staging(verts, kps, [], ["left_foot"])
+    pose_at = poses.kneel if variant == "knees" else poses.squat
+    lean = rng.uniform(0.2, 0.45) if variant == "knees" else rng.uniform(0.3, 0.6)
+    verts, kps, _ = to_floor(*posed(body, [pose_at(p, lean) for p in phases(frames, rng)],
+                                    phenotype))
+    points, parts = body_points(body, verts)
+    low = table_under(points, np.isin(parts, HANDS), 0.0, rng)
+    return Staging(verts, kps, low, HANDS if variant == "knees" else [*HANDS, *FEET])
+
+
 STAGES = {"sit": stage_sit, "sofa": stage_sofa, "bed": stage_bed, "table": stage_table,
-          "reach": stage_reach, "walk": stage_walk, "wall": stage_wall}
+          "reach": stage_reach, "walk": stage_walk, "wall": stage_wall,
+          "kneel": stage_kneel}
 
 
 def table_under(points: np.ndarray, touching: np.ndarray, heading: float,

@@ -14,6 +14,7 @@ from PIL import Image
 
 from benchmarks.evaluate import procrustes
 from benchmarks.generate import ground_truth_check, make_benchmark
+from benchmarks.staging import KNEELING, kneeling
 from prox_engine.dataset import Recording, load_calibration, load_depth_camera
 from prox_engine.depth import load_depth_points
 from prox_engine.keypoints import load_keypoints
@@ -64,6 +65,35 @@ def test_generated_truth_touches_without_penetrating(tmp_path, body):
         truth = np.load(tmp_path / "ground_truth" / rec / f"{frame}.npz")["vertices"]
         gap = torch.cdist(points, torch.tensor(truth, dtype=torch.float32)).min(1).values
         assert len(points) == 2000 and float(gap.median()) < 0.015
+
+
+@pytest.mark.parametrize("variant", KNEELING)
+def test_kneeling_bodies_rest_on_the_floor(body, variant):
+    """Each kneeling variant rests on the floor with the parts it kneels or stands on, in
+    every frame, and its palms (where it has a table) on the table's top."""
+    phenotype = {"gender": 0.9, "height": 0.45, "muscle": 0.4, "weight": 0.5,
+                 "proportions": 0.6}
+    staging = kneeling(body, phenotype, 2, np.random.default_rng(1), variant)
+    parts = np.asarray(body.vertex_parts)
+    lowest = lambda names: staging.vertices[:, np.isin(parts, names), 2].min(1)  # noqa: E731
+    on_floor = {"knees": [["left_thigh", "left_shin"], ["right_thigh", "right_shin"],
+                          ["left_foot"], ["right_foot"]],
+                "squat": [["left_foot"], ["right_foot"]],
+                "one knee": [["left_foot"], ["right_thigh", "right_shin"]]}[variant]
+    for names in on_floor:
+        assert (lowest(names) < 0.015).all(), (names, lowest(names))
+    assert staging.vertices[..., 2].min() > -1e-6
+    if variant == "squat":  # the soles flat, heels down
+        soles = staging.vertices[:, body.contact_parts["left_foot"].numpy(), 2]
+        assert np.ptp(soles, axis=1).max() < 0.03
+    if variant == "one knee":
+        assert staging.furniture == []
+        back_sole = staging.vertices[:, body.contact_parts["right_foot"].numpy(), 2]
+        assert (back_sole.max(1) > 0.08).all()  # on the knee and toes, the heel up
+    else:
+        top = staging.furniture[0].bounds[1, 2]
+        assert 0.25 < top < 0.8  # a low table
+        assert np.allclose(lowest(["left_hand", "right_hand"]), top + 0.003, atol=0.01)
 
 
 def test_small_benchmark_prox_beats_rgb(tmp_path):
