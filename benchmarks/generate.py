@@ -44,7 +44,7 @@ from . import detector, kinect
 from .poses import sample_phenotype, stature
 from .staging import STAGES, Staging, table
 
-KINDS = ("sit", "sofa", "bed", "table", "reach", "walk", "wall", "kneel")  # staging.STAGES
+KINDS = ("sit", "sofa", "bed", "table", "reach", "walk", "wall", "kneel", "legup")  # staging.STAGES
 FACES = 280_000  # target size of each scan
 
 

@@ -100,6 +100,15 @@ def sit(phase: float, lean: float, hip: float) -> Pose:
     return pose
 
 
+def leg_up(phase: float, lean: float, hip: float, lift: float, knee: float) -> Pose:
+    """Sitting as :func:`sit`, the right leg stretched out forward (its hip flexed ``lift``
+    more than the left's, the knee bent by ``knee``) with the heel on something low."""
+    pose = sit(phase, lean, hip)
+    pose.update({"upperleg01.R": [-hip - lift, 0.0, 0.1], "lowerleg01.R": [knee, 0.0, 0.0],
+                 "foot.R": [0.3, 0.0, 0.0]})
+    return pose
+
+
 def sofa(phase: float, recline: float, hip: float) -> Pose:
     """Sitting on a sofa; the caller reclines the whole body by ``recline`` about x, so the
     hips open by as much to hold the thighs as ``hip`` does on a chair, and the neck bends

@@ -46,6 +46,20 @@ def stage_sit(body: AnnyBody, phenotype: dict[str, float], frames: int,
     return Staging(verts, kps, [seat], ["gluteus", "thighs", "back", *FEET])
 
 
+def stage_legup(body: AnnyBody, phenotype: dict[str, float], frames: int,
+                rng: np.random.Generator) -> Staging:
+    """On a chair, the right leg stretched out with the heel on a low table in front."""
+    lean, lift, knee = rng.uniform(-0.12, -0.04), rng.uniform(-0.1, 0.1), rng.uniform(0.2, 0.5)
+    pose_at = lambda p, h: poses.leg_up(p, lean, h, lift, knee)  # noqa: E731
+    hip = poses.seated_hip(body, phenotype, lambda h: pose_at(0.0, h))
+    verts, kps, _ = to_floor(*posed(body, [pose_at(p, hip) for p in phases(frames, rng)],
+                                    phenotype))
+    points, parts = body_points(body, verts)
+    seat = chair(points, parts, width=rng.uniform(0.45, 0.55), cushion=rng.uniform(*CUSHION))
+    low = table_under(points, parts == "right_foot", 0.0, rng)
+    return Staging(verts, kps, [seat, *low], ["gluteus", "thighs", "back", *FEET])
+
+
 def stage_sofa(body: AnnyBody, phenotype: dict[str, float], frames: int,
                rng: np.random.Generator) -> Staging:
     """Reclined by 25-35 degrees on a sofa: a flat backrest tilted with the trunk against
@@ -202,7 +216,7 @@ def kneeling(body: AnnyBody, phenotype: dict[str, float], frames: int,
 
 STAGES = {"sit": stage_sit, "sofa": stage_sofa, "bed": stage_bed, "table": stage_table,
           "reach": stage_reach, "walk": stage_walk, "wall": stage_wall,
-          "kneel": stage_kneel}
+          "kneel": stage_kneel, "legup": stage_legup}
 
 
 def table_under(points: np.ndarray, touching: np.ndarray, heading: float,

@@ -14,7 +14,7 @@ from PIL import Image
 
 from benchmarks.evaluate import procrustes
 from benchmarks.generate import ground_truth_check, make_benchmark
-from benchmarks.staging import KNEELING, kneeling
+from benchmarks.staging import KNEELING, kneeling, stage_legup
 from prox_engine.dataset import Recording, load_calibration, load_depth_camera
 from prox_engine.depth import load_depth_points
 from prox_engine.keypoints import load_keypoints
@@ -94,6 +94,28 @@ def test_kneeling_bodies_rest_on_the_floor(body, variant):
         top = staging.furniture[0].bounds[1, 2]
         assert 0.25 < top < 0.8  # a low table
         assert np.allclose(lowest(["left_hand", "right_hand"]), top + 0.003, atol=0.01)
+
+
+def test_a_stretched_leg_rests_its_heel_on_the_low_table(body):
+    """The leg-up kind: seated on the chair's seat, the left sole on the floor, the right
+    heel on a low table, with nothing else of the body over that table's top."""
+    phenotype = {"gender": 0.1, "height": 0.35, "muscle": 0.4, "weight": 0.5,
+                 "proportions": 0.4}
+    staging = stage_legup(body, phenotype, 2, np.random.default_rng(2))
+    seat, *low = staging.furniture
+    parts = np.asarray(body.vertex_parts)
+    verts = staging.vertices
+    heel = verts[:, parts == "right_foot"]
+    top = low[0].bounds[1, 2]
+    assert 0.1 < top < 0.5 and np.allclose(heel[..., 2].min(1), top + 0.003, atol=0.01)
+    assert (verts[:, parts == "left_foot", 2].min(1) < 0.01).all()
+    # on the seat (a box whose top corners are the seat's height), sunk at most 4 cm in
+    gluteus = verts[:, body.contact_parts["gluteus"].numpy(), 2].min(1)
+    assert all(((seat.vertices[:, 2] >= g) & (seat.vertices[:, 2] < g + 0.045)).any()
+               for g in gluteus)
+    lo, hi = low[0].bounds
+    over = ((verts[..., :2] > lo[:2]) & (verts[..., :2] < hi[:2])).all(-1)
+    assert (verts[over][:, 2] > top).all()
 
 
 def test_small_benchmark_prox_beats_rgb(tmp_path):
