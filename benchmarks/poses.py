@@ -179,7 +179,7 @@ def kneel(phase: float, lean: float) -> Pose:
 
 def squat(phase: float, lean: float) -> Pose:
     """Squatting on flat feet, knees apart, the trunk leaning forward by ``lean``, both
-    palms down on a low box in front."""
+    palms down on a low table in front."""
     s = float(np.sin(phase))
     return {
         **_mirror("upperleg01", [-2.1, 0.0, -0.15]), **_mirror("lowerleg01", [2.4, 0.0, 0.0]),
