@@ -370,10 +370,11 @@ def first_hits(rays: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- checks
 def ground_truth_check(out: Path, rec: str, body: AnnyBody | None = None) -> dict:
     """How the ground truth sits in its scan (at the true registration): ``penetration``,
-    the mean share of ``body.scene_vertices`` more than 1 cm inside it; ``contact``, the share of the
-    vertices of the recording's contact parts within 2 cm of it; ``touching``, per contact
-    part the number of frames in which one of its vertices is that close. Uses exact
-    distances (a 64^3 SDF of the scan within 0.3 m of the body, exact closest points)."""
+    the mean share of ``body.scene_vertices`` more than 1 cm inside it; ``contact``, the
+    share of the vertices of the recording's contact parts within 2 cm of it;
+    ``touching``, per contact part the number of frames in which one of its vertices is
+    that close. Uses exact distances (a 64^3 SDF of the scan within 0.3 m of the body,
+    exact closest points)."""
     body = body or AnnyBody.load()
     recording = Recording(Path(out), rec)
     truth = Path(out) / "ground_truth" / rec
