@@ -38,6 +38,7 @@ class AnnySkeleton(torch.nn.Module):
                                       @ reference)[order])  # U_p^T U_c
         self.register_buffer("root_reference", reference[0])
         self.register_buffer("bottom", torch.tensor([0.0, 0.0, 0.0, 1.0]))
+        self.register_buffer("identity", torch.eye(3))  # the unposed bones' rotation
 
     def offsets(self, rest_poses: torch.Tensor) -> torch.Tensor:
         """(B, J, 3) each bone's head from its parent's in the parent's frame, depth order;
@@ -56,7 +57,7 @@ class AnnySkeleton(torch.nn.Module):
         :meth:`offsets`."""
         batch = len(rotvecs)
         rotations = axis_angle_to_matrix(rotvecs)
-        rotations = torch.cat([rotations, torch.eye(3).expand(batch, 1, 3, 3)], 1)[:, self.slot]
+        rotations = torch.cat([rotations, self.identity.expand(batch, 1, 3, 3)], 1)[:, self.slot]
         offsets = offsets.expand(batch, -1, -1)
         bottom = self.bottom.expand(batch, len(self.slot), 1, 4)
         step = torch.cat([torch.cat([self.turn @ rotations, offsets[..., None]], -1), bottom], -2)
