@@ -81,9 +81,6 @@ class FitConfig:
     arm_restarts: bool = True
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
-    # Sequence mode's stages run at most this many iterations per call (None: each
-    # stage's own budget): a frame warm-started from its neighbour starts near its fit.
-    sequence_max_iter: int | None = None
     ftol: float = 1e-5
     # Prior weights (pose, shape, bending, hands) enter the loss squared, as SMPLify-X and
     # PROX write theirs (so their stage values can be copied as they are).

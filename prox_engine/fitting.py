@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -152,10 +152,6 @@ class Fitter:
                       for k, v in warm_start.items()}
             labels = self._closest_labelling(target, conf, previous_keypoints)
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
-            if self.config.sequence_max_iter is not None:
-                stages = [replace(s, max_iter=min(s.max_iter or self.config.max_iter,
-                                                  self.config.sequence_max_iter))
-                          for s in stages]
             frozen_shape = True
         # Rows per frame fitted side by side (starts, then arm restarts) and the stage
         # after which each frame keeps its best row.

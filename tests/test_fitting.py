@@ -593,28 +593,6 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
     assert sunk == 0.0 and error < 0.075, (sunk, error)
 
 
-
-def test_sequence_mode_caps_each_stage_iterations(body):
-    """Sequence mode runs its stages at most ``sequence_max_iter`` L-BFGS iterations a
-    call, whatever a stage's own budget: prox's last stage has 30 for frames fitted from
-    scratch, and a frame warm-started from its neighbour keeps the 20 it had."""
-    cam2world = tilted_camera()
-    params = _standing_params(body, cam2world)
-    with torch.no_grad():
-        truth = body(params).keypoints[0, :25]
-    start = {k: v.clone() for k, v in params.items()}
-    start["body_pose"] += 0.1  # the neighbour's fit: near, not at, this frame's
-    stage = Stage("final", {"body": 1.0, "pose_prior": 1.0}, optimize_shape=False,
-                  max_iter=12, max_calls=1)
-    evaluations = {}
-    for cap in (None, 3):
-        config = FitConfig("short", [stage], sequence_max_iter=cap)
-        result = Fitter(body, CAMERA, config).fit([frame_of(truth)], warm_start=start)[0]
-        evaluations[cap] = result.stage_evaluations["final"]
-    # One evaluation at the start, then at most 5/4 of the iterations (the line search).
-    assert evaluations[3] <= 1 + 3 * 5 // 4 < evaluations[None], evaluations
-
-
 def test_rescale_scales_the_body_about_the_camera(body):
     """The rescale after a scale search refits shape and root to the scaled keypoints
     alone, without the mesh: the whole mesh must still come out scaled about the camera
