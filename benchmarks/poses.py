@@ -163,31 +163,36 @@ def reach(phase: float, twist: float, hip: float) -> Pose:
     return pose
 
 
+def _palms_on_low_table(phase: float, lean: float, arms: float, neck: float) -> Pose:
+    """The upper body of a person low down with both palms on a low table in front: the
+    trunk leaning forward by ``lean``, the upper arms raised by ``arms``, the head looking
+    about, the neck bent by ``neck``."""
+    s = float(np.sin(phase))
+    return {
+        **{bone: [lean / 3, 0.0, 0.0] for bone in ("spine03", "spine02", "spine01")},
+        **_mirror("upperarm01", [arms, 0.0, -0.3]), **_mirror("lowerarm02", [0.0, 0.6, 0.0]),
+        **_mirror("wrist", [1.1, 0.0, 0.0]),
+        "neck01": [neck + 0.1 * s, 0.0, 0.0], "head": [0.0, 0.25 * s, 0.0],
+    }
+
+
 def kneel(phase: float, lean: float) -> Pose:
     """On both knees, the shins flat on the floor and the toes pointed behind, the trunk
     leaning forward by ``lean`` from the hips, both palms down on a low table in front."""
-    s = float(np.sin(phase))
     return {
         **_mirror("upperleg01", [-0.1 - lean / 2, 0.0, 0.0]),
         **_mirror("lowerleg01", [1.67 + lean / 2, 0.0, 0.0]), **_mirror("foot", [0.9, 0.0, 0.0]),
-        **{bone: [lean / 3, 0.0, 0.0] for bone in ("spine03", "spine02", "spine01")},
-        **_mirror("upperarm01", [0.6, 0.0, -0.3]), **_mirror("lowerarm02", [0.0, 0.6, 0.0]),
-        **_mirror("wrist", [1.1, 0.0, 0.0]),
-        "neck01": [0.1 * s, 0.0, 0.0], "head": [0.0, 0.25 * s, 0.0],
+        **_palms_on_low_table(phase, lean, arms=0.6, neck=0.0),
     }
 
 
 def squat(phase: float, lean: float) -> Pose:
     """Squatting on flat feet, knees apart, the trunk leaning forward by ``lean``, both
     palms down on a low table in front."""
-    s = float(np.sin(phase))
     return {
         **_mirror("upperleg01", [-2.1, 0.0, -0.15]), **_mirror("lowerleg01", [2.4, 0.0, 0.0]),
-        **_mirror("foot", [-0.3, 0.0, 0.0]),
-        **{bone: [lean / 3, 0.0, 0.0] for bone in ("spine03", "spine02", "spine01")},
-        **_mirror("upperarm01", [0.9, 0.0, -0.3]), **_mirror("lowerarm01", [0.2, 0.0, 0.0]),
-        **_mirror("lowerarm02", [0.0, 0.6, 0.0]), **_mirror("wrist", [1.1, 0.0, 0.0]),
-        "neck01": [-0.2 + 0.1 * s, 0.0, 0.0], "head": [0.0, 0.25 * s, 0.0],
+        **_mirror("foot", [-0.3, 0.0, 0.0]), **_mirror("lowerarm01", [0.2, 0.0, 0.0]),
+        **_palms_on_low_table(phase, lean, arms=0.9, neck=-0.2),
     }
 
 

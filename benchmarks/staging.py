@@ -186,7 +186,11 @@ def stage_wall(body: AnnyBody, phenotype: dict[str, float], frames: int,
     return Staging(verts, kps, [wall], FEET)
 
 
-KNEELING = ("knees", "squat", "one knee")
+# Kneeling variants with both palms on a low table: the pose, the range of its forward
+# lean and the contact parts that touch something.
+ON_A_LOW_TABLE = {"knees": (poses.kneel, (0.2, 0.45), HANDS),
+                  "squat": (poses.squat, (0.3, 0.6), [*HANDS, *FEET])}
+KNEELING = (*ON_A_LOW_TABLE, "one knee")
 
 
 def stage_kneel(body: AnnyBody, phenotype: dict[str, float], frames: int,
@@ -205,13 +209,13 @@ def kneeling(body: AnnyBody, phenotype: dict[str, float], frames: int,
         verts, kps, _ = to_floor(*posed(body, [poses.one_knee(p, front, back)
                                                for p in phases(frames, rng)], phenotype))
         return Staging(verts, kps, [], ["left_foot"])
-    pose_at = poses.kneel if variant == "knees" else poses.squat
-    lean = rng.uniform(0.2, 0.45) if variant == "knees" else rng.uniform(0.3, 0.6)
+    pose_at, leans, contacts = ON_A_LOW_TABLE[variant]
+    lean = rng.uniform(*leans)
     verts, kps, _ = to_floor(*posed(body, [pose_at(p, lean) for p in phases(frames, rng)],
                                     phenotype))
     points, parts = body_points(body, verts)
     low = table_under(points, np.isin(parts, HANDS), 0.0, rng)
-    return Staging(verts, kps, low, HANDS if variant == "knees" else [*HANDS, *FEET])
+    return Staging(verts, kps, low, contacts)
 
 
 STAGES = {"sit": stage_sit, "sofa": stage_sofa, "bed": stage_bed, "table": stage_table,
