@@ -27,7 +27,8 @@ SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
            "prox-no-support", "prox-no-visibility", "prox-one-start", "prox-start-by-data",
            "prox-same-thighs", "prox-no-arm-restarts", "prox-no-facing", "prox-no-upright",
-           "prox-scene-translates", "prox-given-registration", "prox-cushion", "prox",
+           "prox-scene-translates", "prox-given-registration", "prox-every-vertex",
+           "prox-cushion", "prox",
            "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,
            "prox-no-refit" + SEQUENCE, "prox-rescaled" + SEQUENCE, "smplifyd", "proxd")

@@ -97,6 +97,9 @@ class Fitter:
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
+        self.penetration_vertices = (losses.penetration_vertices(body,
+                                                                 config.penetration_spacing)
+                                     if config.uses("penetration") else None)
         self.contact_normals = (VertexNormals(body.faces, torch.cat(self.contact_part_ids))
                                 if self.contact_part_ids else None)
         self.events: list[str] = []  # of the current fit (see FitResult.events)
@@ -271,7 +274,7 @@ class Fitter:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:
             terms["penetration"] = w["penetration"] * losses.penetration(
-                out, body, self.scene, cfg.penetration_tolerance)
+                out, *self.penetration_vertices, self.scene, cfg.penetration_tolerance)
         if w.get("contact", 0) > 0 and self.contact_normals is not None:
             terms["contact"] = w["contact"] * losses.contact(
                 out, self.scene, self.contact_normals, cfg.contact_rho,

@@ -99,6 +99,17 @@ class VertexNormals:
         return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
+def grid_subsample(points: torch.Tensor, spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ascending indices of one of ``points`` (N, 3), the first, in each occupied cell of
+    a grid of ``spacing`` aligned with the origin, and how many points each cell holds."""
+    _, cell, counts = torch.unique(torch.floor(points / spacing).long(), dim=0,
+                                   return_inverse=True, return_counts=True)
+    first = torch.full((len(counts),), len(points)).scatter_reduce(
+        0, cell, torch.arange(len(points)), "amin")
+    order = first.argsort()
+    return first[order], counts[order]
+
+
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula for (..., 3) axis-angle vectors, smooth at zero."""
     theta2 = (aa * aa).sum(-1, keepdim=True)

@@ -490,3 +490,49 @@ def test_start_choice_asks_which_start_can_sit_on_the_chair(tmp_path, body):
     assert choice() == [1]
     config.start_scene_weight = 0.0
     assert choice() == [0]
+
+
+def test_grid_subsample_keeps_the_first_point_of_each_cell():
+    from prox_engine.geometry import grid_subsample
+
+    points = torch.tensor([[0.031, 0.0, 0.0], [0.001, 0.002, 0.0], [0.009, 0.004, 0.001],
+                           [0.0, 0.0, -0.001], [0.035, 0.001, 0.0], [0.012, 0.0, 0.0]])
+    # cells of 1 cm: (3,0,0), (0,0,0), (0,0,0), (0,0,-1), (3,0,0), (1,0,0)
+    kept, counts = grid_subsample(points, 0.01)
+    assert kept.tolist() == [0, 1, 3, 5] and counts.tolist() == [2, 2, 1, 1]
+    kept, counts = grid_subsample(points, 0.1)
+    assert kept.tolist() == [0, 3] and counts.tolist() == [5, 1]
+
+
+def test_penetration_reads_one_scene_vertex_per_centimetre(body):
+    """The penetration term's vertices: at 0 every scene vertex once; at 1 cm one per
+    cell over the standing body, counted for the cell's vertices, so that every scene
+    vertex has a kept one within a cell's diagonal, the sparse thighs are kept whole and
+    the dense hands and face thinned; and the counted subset's energy is the whole
+    body's within 6 % for a body standing 2, 5 or 30 cm deep in a floor (scaled by one
+    factor for all instead, the thinned feet would weigh up to a third less)."""
+    from prox_engine.losses import penetration_vertices
+
+    every, once = penetration_vertices(body, 0.0)
+    assert torch.equal(every, torch.nonzero(body.scene_vertices).flatten())
+    assert torch.equal(once, torch.ones(len(every)))
+    kept, counts = penetration_vertices(body, 0.01)
+    assert set(kept.tolist()) <= set(every.tolist()) and len(kept) < 0.55 * len(every)
+    assert int(counts.sum()) == len(every)
+    with torch.no_grad():
+        rest = body(body.init_params(1)).vertices
+    gap = torch.cdist(rest[0, every], rest[0, kept]).min(1).values
+    assert float(gap.max()) <= 0.01 * math.sqrt(3) + 1e-6
+    parts = np.array(body.vertex_parts)
+
+    def share(part: str) -> float:
+        return float(np.isin(kept.numpy(), np.flatnonzero(parts == part)).sum()
+                     / np.isin(every.numpy(), np.flatnonzero(parts == part)).sum())
+
+    assert share("left_thigh") > 0.95 and share("right_thigh") > 0.95
+    assert share("left_hand") < 0.5 and share("head") < 0.5
+    for depth in (0.02, 0.05, 0.3):
+        scene = _scene(plane_mesh(z=float(rest[0, :, 2].min()) + depth))
+        whole = penetration_energy(rest[:, every], scene)
+        assert abs(float(penetration_energy(rest[:, kept], scene, weights=counts) / whole)
+                   - 1) < 0.06, depth
