@@ -105,8 +105,8 @@ class FitConfig:
     # 13348 scene vertices become 6424, the face, hands and feet thinned, the trunk and
     # limbs kept, and the sum stays the paper's to a few per cent. Tuning seeds 0 / 8 / 16
     # against every vertex: PJE 105.3 -> 105.9 mm (paired median +0.1; 1 frame better, 3
-    # worse by more than 15 mm), the scene stages 11 % faster. 0 reads every vertex
-    # (`prox-every-vertex`).
+    # worse by more than 15 mm); the scene stages 1.02-1.05 -> 0.86 s a frame (speed
+    # benchmark, seed 3). 0 reads every vertex (`prox-every-vertex`).
     penetration_spacing: float = 0.01
     # Every stage (as the joint limits): the trunk (mid-hip to neck) is drawn toward world
     # up, robustly, while within about upright_rho (radians) of it, barely beyond (a
