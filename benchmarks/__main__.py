@@ -28,6 +28,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-no-support", "prox-no-visibility", "prox-one-start", "prox-start-by-data",
            "prox-same-thighs", "prox-no-arm-restarts", "prox-no-facing", "prox-no-upright",
            "prox-scene-translates", "prox-given-registration", "prox-every-vertex",
+           "prox-shape-early",
            "prox-cushion", "prox",
            "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,
