@@ -5,14 +5,14 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 import torch
 
 from . import lbfgs, losses
-from .body.base import BodyModel, BodyOutput, Params
+from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, vertex_normals
@@ -23,8 +23,10 @@ from .scale_search import best_scale, carrying_vertices
 from .scene import Scene
 
 
-# Terms that read the posed mesh; stages without them pose keypoints and spheres only.
-MESH_TERMS = ("penetration", "contact", "depth")
+# Terms that read the posed mesh; stages without them pose keypoints and spheres only,
+# and stages with the scene terms alone pose only the vertices those read.
+SCENE_TERMS = ("penetration", "contact")
+MESH_TERMS = (*SCENE_TERMS, "depth")
 
 
 @dataclass
@@ -97,13 +99,31 @@ class Fitter:
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
-        self.penetration_vertices = (losses.penetration_vertices(body,
-                                                                 config.penetration_spacing)
-                                     if config.uses("penetration") else None)
-        self.contact_normals = (VertexNormals(body.faces, torch.cat(self.contact_part_ids))
-                                if self.contact_part_ids else None)
+        self.scene_subset, self.penetration_vertices, self.contact_normals = (
+            self._scene_vertices() if needs_scene else (None, None, None))
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self.evaluations = 0  # body rows evaluated in the current fit
+
+    def _scene_vertices(self) -> tuple[VertexSubset, tuple[torch.Tensor, torch.Tensor] | None,
+                                       VertexNormals | None]:
+        """The vertices the scene terms read (the penetration term's, the contact
+        vertices and the corners of the faces around them, whose normals they need), and
+        those terms' vertex indices and contact normals within that subset."""
+        body = self.body
+        penetration = (losses.penetration_vertices(body, self.config.penetration_spacing)
+                       if self.config.uses("penetration") else None)
+        contact = torch.cat(self.contact_part_ids) if self.contact_part_ids else None
+        ids = [] if penetration is None else [penetration[0]]
+        if contact is not None:
+            ids.append(body.faces[torch.isin(body.faces, contact).any(1)].flatten())
+        subset = body.vertex_subset(torch.cat(ids))
+        local = torch.full((body.num_vertices,), -1, dtype=torch.long)
+        local[subset.ids] = torch.arange(len(subset.ids))
+        faces = local[body.faces]
+        normals = (None if contact is None
+                   else VertexNormals(faces[(faces >= 0).all(1)], local[contact]))
+        return (subset, None if penetration is None else (local[penetration[0]], penetration[1]),
+                normals)
 
     # ------------------------------------------------------------------ public API
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
@@ -274,10 +294,11 @@ class Fitter:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:
             terms["penetration"] = w["penetration"] * losses.penetration(
-                out, *self.penetration_vertices, self.scene, cfg.penetration_tolerance)
+                self._scene_view(out), *self.penetration_vertices, self.scene,
+                cfg.penetration_tolerance)
         if w.get("contact", 0) > 0 and self.contact_normals is not None:
             terms["contact"] = w["contact"] * losses.contact(
-                out, self.scene, self.contact_normals, cfg.contact_rho,
+                self._scene_view(out), self.scene, self.contact_normals, cfg.contact_rho,
                 cfg.contact_max_angle, cfg.contact_max_distance)
         if w.get("depth", 0) > 0 and any(d is not None for d in depth):
             terms["depth"] = w["depth"] * losses.depth_data(out, body, depth, cfg.depth_rho)
@@ -290,7 +311,7 @@ class Fitter:
                    frames: int) -> dict[str, torch.Tensor]:
         """L-BFGS calls on the ``free`` parameters until each frame's loss settles;
         returns the terms at the accepted points (not at the line search's last probes)."""
-        mesh = any(stage.weights.get(term, 0) > 0 for term in MESH_TERMS)
+        mesh = self._mesh_read(stage)
 
         def terms() -> dict[str, torch.Tensor]:
             return self._terms(stage, self.body(params, vertices=mesh), params, target, conf,
@@ -305,6 +326,20 @@ class Fitter:
                        stage.max_calls or self.config.max_calls, self.config.ftol)
         with torch.no_grad():
             return terms()
+
+    def _mesh_read(self, stage: Stage) -> bool | VertexSubset:
+        """What of the mesh a stage's terms read: none, the scene terms' vertices, or all."""
+        read = {t for t in MESH_TERMS if stage.weights.get(t, 0) > 0}
+        if read and read <= set(SCENE_TERMS) and self.scene_subset is not None:
+            return self.scene_subset
+        return bool(read)
+
+    def _scene_view(self, out: BodyOutput) -> BodyOutput:
+        """``out`` with the scene terms' vertices only (picked when the whole mesh was
+        posed, for the depth term)."""
+        if out.vertices.shape[1] == len(self.scene_subset.ids):
+            return out
+        return replace(out, vertices=out.vertices[:, self.scene_subset.ids])
 
     # ------------------------------------------------------------------ scene-aware depth
     @staticmethod

@@ -55,6 +55,34 @@ def test_keypoints_without_the_mesh_are_the_regressed_skinned_vertices(body):
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-4)
 
 
+def test_a_vertex_subset_is_posed_as_the_whole_mesh_picks_it(body):
+    """Posing a subset (in any order, repeated ids once) gives the whole mesh's vertices
+    at those ids, in ascending order, with the same gradients, the shape free or frozen."""
+    torch.manual_seed(4)
+    params = body.init_params(2)
+    params["body_pose"] += torch.randn_like(params["body_pose"]) * 0.4
+    params["global_orient"] = torch.randn(2, 3)
+    params["transl"] = torch.randn(2, 3)
+    params["shape"] = params["shape"] + torch.randn_like(params["shape"])
+    subset = body.vertex_subset(torch.tensor([9000, 17, 4000, 17, 13000]))
+    assert subset.ids.tolist() == [17, 4000, 9000, 13000]
+    weights = torch.randn(2, 4, 3)
+    for free_shape in (True, False):
+        grads, posed = [], []
+        for request in (True, subset):
+            leaves = {k: v.clone().requires_grad_(k != "shape" or free_shape)
+                      for k, v in params.items()}
+            vertices = body(leaves, vertices=request).vertices
+            vertices = vertices[:, subset.ids] if request is True else vertices
+            assert vertices.shape == (2, 4, 3)
+            (vertices * weights).sum().backward()
+            posed.append(vertices.detach())
+            grads.append(torch.cat([leaves[k].grad.flatten() for k in sorted(leaves)
+                                    if leaves[k].grad is not None]))
+        assert torch.allclose(posed[0], posed[1], atol=1e-6)
+        assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-4)
+
+
 def test_translation_and_orientation(body):
     params = body.init_params(1)
     base = body(params).vertices

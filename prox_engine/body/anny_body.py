@@ -22,7 +22,7 @@ from .. import assets
 from ..geometry import vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 from .anny_kinematics import AnnySkeleton
-from .base import BodyModel, BodyOutput, Params
+from .base import BodyModel, BodyOutput, Params, VertexSubset
 
 SIDES = ("L", "R")
 SPINE = ["spine05", "spine04", "spine03", "spine02", "spine01"]
@@ -447,10 +447,11 @@ class AnnyBody(BodyModel):
         self.register_buffer("rest_basis", torch.cat([b.reshape(len(b), -1) for _, b in parts],
                                                      1))
 
-    def _rest(self, shape: torch.Tensor, vertices: bool) -> dict[str, torch.Tensor]:
-        """Rest bone poses, keypoint anchors and (with ``vertices``) rest vertices for shape
-        logits, as anny's ``cached`` bone orientation computes them; kept while the shape
-        is frozen."""
+    def _rest(self, shape: torch.Tensor, vertices: bool | VertexSubset
+              ) -> dict[str, torch.Tensor]:
+        """Rest bone poses, keypoint anchors and (with ``vertices``) rest vertices (of a
+        subset: under the subset as key) for shape logits, as anny's ``cached`` bone
+        orientation computes them; kept while the shape is frozen."""
         cached = self._rest_cache
         frozen = not shape.requires_grad
         if not (frozen and cached is not None and torch.equal(cached["shape"], shape)):
@@ -468,12 +469,28 @@ class AnnyBody(BodyModel):
                       "anchors": anchors.view(len(coeffs), -1, 3)}
             if frozen:
                 self._rest_cache = cached
-        if vertices and "vertices" not in cached:
+        if isinstance(vertices, VertexSubset):
+            if vertices not in cached:
+                cached[vertices] = vertices.data["template"] + torch.einsum(
+                    "bc,cvd->bvd", cached["coeffs"], vertices.data["blendshapes"])
+        elif vertices and "vertices" not in cached:
             cached["vertices"] = self.model.template_vertices + torch.einsum(
                 "bc,cvd->bvd", cached["coeffs"], self.model.blendshapes)
         return cached
 
-    def forward(self, params: Params, vertices: bool = True) -> BodyOutput:
+    def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
+        """The vertices ``ids`` with their rest template, blendshapes and skinning weights
+        gathered once: posing 7553 of the 13718 (the scene terms' vertices) takes 2.4 of
+        a shape-free forward+backward's 9.6 ms less."""
+        ids = torch.unique(ids)
+        model = self.model
+        return VertexSubset(ids, {
+            "template": model.template_vertices[ids].contiguous(),
+            "blendshapes": model.blendshapes[:, ids].contiguous(),
+            "weights": model.vertex_bone_weights[ids].contiguous(),
+            "indices": model.vertex_bone_indices[ids].contiguous()})
+
+    def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
         rest = self._rest(params["shape"], vertices)
         rotvecs = torch.cat([params["global_orient"][:, None], params["body_pose"],
                              params["hand_pose"]], 1)
@@ -481,7 +498,13 @@ class AnnyBody(BodyModel):
         transforms, bone_poses = self.skeleton(rotvecs, params["transl"], rest["bone_poses"],
                                                rest["offsets"])
         skinned = None
-        if vertices:
+        if isinstance(vertices, VertexSubset):
+            from anny.skinning import warp_skinning  # imported by load(), after warp's set-up
+
+            skinned = warp_skinning.linear_blend_skinning(
+                rest[vertices].expand(batch, -1, -1), vertices.data["weights"],
+                vertices.data["indices"], transforms)
+        elif vertices:
             skinned = self.model.get_skinned_vertices(
                 rest["vertices"].expand(batch, -1, -1), transforms)
         anchor = transforms[:, self.anchor_bone, :3]  # (B, pairs, 3, 4)

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -16,6 +16,16 @@ class BodyOutput:
     vertices: torch.Tensor | None  # (B, V, 3); None when not asked for
     keypoints: torch.Tensor  # (B, 118, 3), OpenPose order (see prox_engine.keypoints)
     spheres: torch.Tensor | None = None  # (B, S, 4) collision proxies: centre, radius
+
+
+@dataclass(eq=False)  # hashed by identity: a model may cache per subset
+class VertexSubset:
+    """Some of a body's vertices (``ids``, ascending), prepared by
+    :meth:`BodyModel.vertex_subset`; ``forward(params, vertices=subset)`` poses only
+    those. ``data`` holds a model's own per-subset buffers."""
+
+    ids: torch.Tensor
+    data: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
 class BodyModel(ABC, torch.nn.Module):
@@ -38,9 +48,15 @@ class BodyModel(ABC, torch.nn.Module):
         """Parameters of a mean-shaped body at the origin in one of ``postures``."""
 
     @abstractmethod
-    def forward(self, params: Params, vertices: bool = True) -> BodyOutput:
+    def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
         """Pose the body. Without ``vertices`` a model may skip the mesh (keypoints and
-        spheres only), which is what most fitting stages need."""
+        spheres only), which is what most fitting stages need; with a
+        :class:`VertexSubset` the output's vertices are those of the subset, in its order."""
+
+    def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
+        """The vertices ``ids`` prepared for :meth:`forward` (a model that cannot pose a
+        subset alone poses the whole mesh and picks them)."""
+        return VertexSubset(torch.unique(ids))
 
     @abstractmethod
     def pose_prior(self, params: Params) -> torch.Tensor:

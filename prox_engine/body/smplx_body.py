@@ -27,7 +27,7 @@ from ..config import GENDERS
 from ..errors import InputError
 from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from ..keypoints import BODY, FACE, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
-from .base import BodyModel, BodyOutput, Params
+from .base import BodyModel, BodyOutput, Params, VertexSubset
 from .vposer import LATENT, VPoser
 
 JOINTS = [
@@ -382,9 +382,10 @@ class SMPLXBody(BodyModel):
         return (self._hand_offsets(params["hand_pose"]) + self.hand_mean).reshape(-1, 30, 3)
 
     # ----------------------------------------------------------------- forward
-    def forward(self, params: Params, vertices: bool = True) -> BodyOutput:
+    def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
         """Pose the body; the keypoints need the mesh (face landmarks), so it is always
-        posed."""
+        posed (a subset is picked from it)."""
+        subset = vertices.ids if isinstance(vertices, VertexSubset) else None
         batch = params["transl"].shape[0]
         coeffs = torch.cat([params["betas"], params["expression"]], 1)
         shaped = self.v_template + torch.einsum("bl,vdl->bvd", coeffs, self.shapedirs)
@@ -424,7 +425,8 @@ class SMPLXBody(BodyModel):
         centres = torch.einsum("bsxy,sy->bsx", carry[..., :3, :3], self.sphere_rest) \
             + carry[..., :3, 3] + transl
         spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)
-        return BodyOutput(vertices=vertices, keypoints=keypoints, spheres=spheres)
+        return BodyOutput(vertices=vertices if subset is None else vertices[:, subset],
+                          keypoints=keypoints, spheres=spheres)
 
     @property
     def keypoint_mask(self) -> torch.Tensor:
