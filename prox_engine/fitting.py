@@ -104,7 +104,8 @@ class Fitter:
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self.evaluations = 0  # body rows evaluated in the current fit
 
-    def _scene_vertices(self) -> tuple[VertexSubset, tuple[torch.Tensor, torch.Tensor] | None,
+    def _scene_vertices(self) -> tuple[VertexSubset | None,
+                                       tuple[torch.Tensor, torch.Tensor] | None,
                                        VertexNormals | None]:
         """The vertices the scene terms read (the penetration term's, the contact
         vertices and the corners of the faces around them, whose normals they need), and
@@ -116,6 +117,8 @@ class Fitter:
         ids = [] if penetration is None else [penetration[0]]
         if contact is not None:
             ids.append(body.faces[torch.isin(body.faces, contact).any(1)].flatten())
+        if not ids:  # contact asked for, but the model has no contact vertices
+            return None, None, None
         subset = body.vertex_subset(torch.cat(ids))
         local = torch.full((body.num_vertices,), -1, dtype=torch.long)
         local[subset.ids] = torch.arange(len(subset.ids))

@@ -115,7 +115,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     for name in names:
         params = body.init_params(1, name)
         with torch.no_grad():
-            rest[name] = (body(params).keypoints[0, BODY], body.root_pivot(params)[0])
+            rest[name] = (body(params, vertices=False).keypoints[0, BODY],
+                          body.root_pivot(params)[0])
     kp0 = torch.stack([rest[p][0] for p in cands.postures])  # (C, 25, 3)
     thighs = {name: _thighs_forward(rest[name][0]) for name in names}
     seated = [thighs[p] for p in cands.postures]
