@@ -153,6 +153,10 @@ class AnnyBody(BodyModel):
         weights[8] = (weights[9] + weights[12]) / 2  # mid-hip
         self.register_buffer("keypoint_weights", weights[BODY])
         self._rest_cache: dict[str, torch.Tensor] | None = None
+        # The whole mesh, posed as any other vertex subset is (model buffers, not copies).
+        self._whole = VertexSubset(torch.arange(len(model.template_vertices)), {
+            "template": model.template_vertices, "blendshapes": model.blendshapes,
+            "weights": model.vertex_bone_weights, "indices": model.vertex_bone_indices})
         self._setup_phenotype_coefficients()
         self._setup_static_geometry()
         self._setup_rest_basis(*self._setup_keypoint_anchors())
@@ -447,10 +451,10 @@ class AnnyBody(BodyModel):
         self.register_buffer("rest_basis", torch.cat([b.reshape(len(b), -1) for _, b in parts],
                                                      1))
 
-    def _rest(self, shape: torch.Tensor, vertices: bool | VertexSubset
+    def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None
               ) -> dict[str, torch.Tensor]:
-        """Rest bone poses, keypoint anchors and (with ``vertices``) rest vertices (of a
-        subset: under the subset as key) for shape logits, as anny's ``cached`` bone
+        """Rest bone poses, keypoint anchors and (for a ``vertices`` subset, under the
+        subset as key) rest vertices for shape logits, as anny's ``cached`` bone
         orientation computes them; kept while the shape is frozen."""
         cached = self._rest_cache
         frozen = not shape.requires_grad
@@ -469,44 +473,35 @@ class AnnyBody(BodyModel):
                       "anchors": anchors.view(len(coeffs), -1, 3)}
             if frozen:
                 self._rest_cache = cached
-        if isinstance(vertices, VertexSubset):
-            if vertices not in cached:
-                cached[vertices] = vertices.data["template"] + torch.einsum(
-                    "bc,cvd->bvd", cached["coeffs"], vertices.data["blendshapes"])
-        elif vertices and "vertices" not in cached:
-            cached["vertices"] = self.model.template_vertices + torch.einsum(
-                "bc,cvd->bvd", cached["coeffs"], self.model.blendshapes)
+        if vertices and vertices not in cached:
+            cached[vertices] = vertices.data["template"] + torch.einsum(
+                "bc,cvd->bvd", cached["coeffs"], vertices.data["blendshapes"])
         return cached
 
     def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
         """The vertices ``ids`` with their rest template, blendshapes and skinning weights
         gathered once: posing 7553 of the 13718 (the scene terms' vertices) takes 2.4 of
         a shape-free forward+backward's 9.6 ms less."""
-        ids = torch.unique(ids)
-        model = self.model
-        return VertexSubset(ids, {
-            "template": model.template_vertices[ids].contiguous(),
-            "blendshapes": model.blendshapes[:, ids].contiguous(),
-            "weights": model.vertex_bone_weights[ids].contiguous(),
-            "indices": model.vertex_bone_indices[ids].contiguous()})
+        subset = super().vertex_subset(ids)
+        subset.data = {k: (v[:, subset.ids] if k == "blendshapes" else v[subset.ids])
+                       .contiguous() for k, v in self._whole.data.items()}
+        return subset
 
     def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
-        rest = self._rest(params["shape"], vertices)
+        subset = self._whole if vertices is True else vertices or None
+        rest = self._rest(params["shape"], subset)
         rotvecs = torch.cat([params["global_orient"][:, None], params["body_pose"],
                              params["hand_pose"]], 1)
         batch = len(rotvecs)
         transforms, bone_poses = self.skeleton(rotvecs, params["transl"], rest["bone_poses"],
                                                rest["offsets"])
         skinned = None
-        if isinstance(vertices, VertexSubset):
+        if subset is not None:
             from anny.skinning import warp_skinning  # imported by load(), after warp's set-up
 
             skinned = warp_skinning.linear_blend_skinning(
-                rest[vertices].expand(batch, -1, -1), vertices.data["weights"],
-                vertices.data["indices"], transforms)
-        elif vertices:
-            skinned = self.model.get_skinned_vertices(
-                rest["vertices"].expand(batch, -1, -1), transforms)
+                rest[subset].expand(batch, -1, -1), subset.data["weights"],
+                subset.data["indices"], transforms)
         anchor = transforms[:, self.anchor_bone, :3]  # (B, pairs, 3, 4)
         moved = ((anchor[..., :3] @ rest["anchors"].expand(batch, -1, -1)[..., None])[..., 0]
                  + anchor[..., 3] * self.anchor_weight[:, None])
