@@ -25,7 +25,8 @@ from .generate import KINDS, make_benchmark
 
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
-           "prox-no-support", "prox-no-visibility", "prox-one-start", "prox-start-by-data",
+           "prox-no-support", "prox-no-visibility", "prox-toes-counted", "prox-one-start",
+           "prox-start-by-data",
            "prox-same-thighs", "prox-no-arm-restarts", "prox-no-facing", "prox-no-upright",
            "prox-scene-translates", "prox-given-registration", "prox-every-vertex",
            "prox-shape-early",

@@ -41,6 +41,8 @@ class FitConfig:
     scale_support: bool = True  # the scale search asks that the body rest on a surface
     # ... and that the joints the detector clearly saw be in front of the scan
     scale_visibility: bool = True
+    # ... and does not count the toes as penetrating (see scale_search.TOE_REACH)
+    scale_free_toes: bool = True
     # Sequence mode keeps the anchor frame's shape, so each other frame's depth is the one
     # its keypoint stage reaches from its neighbour's. On, each frame's scale is searched
     # against the scene too, before its contact stage, which rescales the body: closer joints

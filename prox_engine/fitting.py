@@ -16,10 +16,10 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, vertex_normals
-from .keypoints import (BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, Keypoints,
-                        ankle_seen, side_swap)
+from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
+                        Keypoints, ankle_seen, side_swap)
 from .initialisation import best_start
-from .scale_search import best_scale, carrying_vertices
+from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
 
 
@@ -99,6 +99,10 @@ class Fitter:
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
+        with torch.no_grad():
+            rest = body(body.init_params(1))
+        self.toes = toe_vertices(body.vertex_parts, rest.vertices[0],
+                                 rest.keypoints[0, ANKLES])
         self.scene_subset, self.penetration_vertices, self.contact_normals = (
             self._scene_vertices() if needs_scene else (None, None, None))
         self.events: list[str] = []  # of the current fit (see FitResult.events)
@@ -368,7 +372,8 @@ class Fitter:
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
                                  cfg.contact_max_distance, cfg.scale_support,
-                                 joints if cfg.scale_visibility else None)
+                                 joints if cfg.scale_visibility else None,
+                                 self.toes if cfg.scale_free_toes else None)
         return scale, cost
 
     def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:

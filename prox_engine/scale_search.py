@@ -44,6 +44,12 @@ CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
 # adult): 97 scales of the whole mesh were a fifth of a frame's time.
 STRIDE = 3
+# A foot's toes turn about its ankle, and the scene stages bend a foot out of a floor, but
+# they do not move the body along its rays: the toes' penetration (foot vertices more than
+# TOE_REACH from the ankle on the standing mean body) is not counted. A kneeler fitted with
+# the toes pointing down was otherwise shrunk toward the camera until they left the floor;
+# a seated body scaled too large still sinks its heels.
+TOE_REACH = 0.10
 # A scan registered to the camera 1-3 cm and a degree off, or a soft cushion, puts
 # correctly placed soles a few centimetres into the floor: shallower penetration is not
 # counted.
@@ -51,6 +57,17 @@ PENETRATION_MARGIN = 0.02
 # Joints the detector clearly saw are in front of the scan: a body scaled until they are
 # behind a bed, wall or table from the camera costs this much (all of them hidden) on top.
 VISIBILITY_WEIGHT = 1.0
+
+
+def toe_vertices(parts: list[str], rest: torch.Tensor, ankles: torch.Tensor) -> torch.Tensor:
+    """(V,) bool: the foot vertices of a body at rest (``rest`` (V, 3), per-vertex
+    ``parts``) more than TOE_REACH from their side's ankle (``ankles`` (2, 3), right and
+    left, as keypoints.ANKLES)."""
+    toes = torch.zeros(len(parts), dtype=torch.bool)
+    for side, ankle in zip(("right_foot", "left_foot"), ankles):
+        foot = torch.tensor([p == side for p in parts])
+        toes |= foot & ((rest - ankle).norm(dim=1) > TOE_REACH)
+    return toes
 
 
 def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> torch.Tensor:
@@ -67,14 +84,15 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                carrying: torch.Tensor, contact_parts: list[torch.Tensor], scene: Scene,
                use_contact: bool, use_penetration: bool, rho: float, max_angle_deg: float,
                max_distance: float, use_support: bool = True,
-               seen_joints: list[torch.Tensor] | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+               seen_joints: list[torch.Tensor] | None = None,
+               toes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
     the body's underside is from resting on an upward-facing surface, plus the share of
     ``seen_joints`` (per frame, (J, 3) camera frame: those the detector clearly saw) that
-    are behind the scan from the camera, plus a weak prior on body size. ``vertices``
+    are behind the scan from the camera, plus a weak prior on body size. The ``toes``
+    ((V,) bool, :func:`toe_vertices`) do not count as penetrating. ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
@@ -84,6 +102,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     carrying = carrying[sampled]
+    counted = torch.ones_like(carrying) if toes is None else ~toes[sampled]
     best, lowest = [], []
     for b in range(vertices.shape[0]):
         cost = torch.zeros_like(prior)
@@ -91,7 +110,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         signed = scene.signed_distance(scaled) if use_penetration or use_support else None
         if use_penetration:
             depth = torch.relu(-signed - PENETRATION_MARGIN)
-            cost = cost + PENETRATION_WEIGHT * (depth / PENETRATION_SCALE).clamp(max=1.0).mean(1)
+            inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
+            cost = cost + PENETRATION_WEIGHT * inside.mean(1)
         if use_contact and contact_parts:
             misses = []
             for ids in contact_parts:

@@ -336,6 +336,41 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     assert abs(float(scale) - 1.0) < 0.02
 
 
+def test_scale_search_keeps_a_body_whose_toes_point_into_the_floor(body):
+    """A correctly placed standing body whose feet are fitted pointing down (as a
+    kneeler's often are), the toes 10 cm into the floor: the scene stages bend a foot
+    out, but do not move the body along its rays, so the search keeps the scale within
+    2 % instead of shrinking the body toward the camera until the toes leave the floor."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.keypoints import ANKLES
+    from prox_engine.scale_search import best_scale, toe_vertices
+    from prox_engine.synthetic import look_at
+
+    params = body.init_params(1)
+    with torch.no_grad():
+        rest = body(params)
+        for side in ("L", "R"):
+            params["body_pose"][0, BODY_BONES.index(f"foot.{side}"), 0] = 0.7
+        pointed = body(params).vertices[0]
+    lift = torch.tensor([0.0, 0.0, -float(rest.vertices[0, :, 2].min())])
+    assert float((pointed + lift)[:, 2].min()) < -0.08  # the toes are through the floor
+    floor = plane_mesh(size=10.0)
+    cam2world = look_at(np.array([0.6, -3.0, 1.4]), np.array([0.1, 0.0, 0.8]))
+    scene = Scene(floor.vertices, floor.faces, cam2world,
+                  compute_sdf(floor.vertices, floor.faces, dim=96, padding=0.5),
+                  sample_spacing=0.05)
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    camera = ((pointed + lift - torch.tensor(cam2world[:3, 3], dtype=torch.float32))
+              @ rotation)[None]
+    toes = toe_vertices(body.vertex_parts, rest.vertices[0], rest.keypoints[0, ANKLES])
+    parts = [body.contact_parts[p] for p in ("left_foot", "right_foot")]
+    scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
+                          _carrying(body), parts, scene, True, True, rho=0.05,
+                          max_angle_deg=45, max_distance=0.15, toes=toes)
+    assert abs(float(scale) - 1.0) < 0.02
+
+
 def test_scale_search_keeps_the_joints_the_detector_saw_in_view(body):
     """A standing body fitted 25 cm behind a wall (seen by a tilted, rolled, off-centre
     camera): the joints the detector saw cannot be behind it, so the search brings the body
