@@ -61,6 +61,10 @@ class FitConfig:
     # Sequence mode fits a frame again from scratch when its neighbour's fit lost the
     # keypoints (pipeline.REFIT_RATIO), and goes on from that fit.
     sequence_refit: bool = True
+    # ... and when the labelling taken from its neighbour's fit overrides the detector's
+    # left and right for the second frame running: the detector swaps a frame's sides now
+    # and then, so a chain that keeps overriding it carries a wrong anchor's labelling.
+    sequence_side_refit: bool = True
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.

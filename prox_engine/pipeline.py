@@ -145,22 +145,40 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
 def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: float
               ) -> list[FitResult]:
     """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``). Where that
-    lost the keypoints (a reprojection error over REFIT_RATIO times the anchor's and over
-    REFIT_MIN_PX), the frame is fitted again from scratch, and the sequence goes on from
-    that fit, with its own shape: a warm start that lost the keypoints may still end
+    lost the keypoints or keeps overriding the detector's sides (:func:`refit_reason`),
+    the frame is fitted again from scratch, and the sequence goes on from that fit, with
+    its own shape: a warm start that lost the keypoints may still end
     near them at a wrong depth (a lying body 30 cm near, 13.0 px off against the fresh
     fit's 13.4), which the fresh fit's scale search does not inherit."""
     results = fitter.fit([frame], warm_start=previous.params,
                          previous_keypoints=previous.keypoints[None])
-    error = _error_px(fitter, results[0], frame)
-    if fitter.config.sequence_refit and error > max(REFIT_RATIO * anchor_px, REFIT_MIN_PX):
+    why = refit_reason(fitter.config, _error_px(fitter, results[0], frame), anchor_px,
+                       previous.swapped, results[0].swapped)
+    if why:
         fresh = fitter.fit([frame])
-        fresh[0].events.append(f"sequence: refitted from scratch, {error:.0f} px off "
-                               f"from its neighbour's fit ({anchor_px:.0f} for the anchor)")
+        fresh[0].events.append(f"sequence: refitted from scratch, {why}")
         _charge(fresh[0], "discarded_fit", results[0].seconds,
                 sum(results[0].stage_evaluations.values()))
         return fresh
     return results
+
+
+def refit_reason(config: FitConfig, error_px: float, anchor_px: float,
+                 previous_swapped: list[str], swapped: list[str]) -> str:
+    """Why sequence mode fits a frame again from scratch ('' if it keeps the warm fit
+    ending ``error_px`` from the keypoints, relabelled ``swapped``, whose neighbour was
+    relabelled ``previous_swapped``): the fit lost the keypoints (over REFIT_RATIO times
+    the anchor's error and over REFIT_MIN_PX), or, with ``sequence_side_refit``, the
+    chain overrode the detector's left and right for the second frame running."""
+    if not config.sequence_refit:
+        return ""
+    if error_px > max(REFIT_RATIO * anchor_px, REFIT_MIN_PX):
+        return (f"{error_px:.0f} px off from its neighbour's fit ({anchor_px:.0f} for the "
+                "anchor)")
+    if config.sequence_side_refit and previous_swapped and swapped:
+        return ("its neighbour's fit overrode the detector's left and right for the second "
+                "frame running")
+    return ""
 
 
 def _charge(result: FitResult, step: str, seconds: float, evaluations: float) -> None:
