@@ -62,8 +62,9 @@ class FitConfig:
     # keypoints (pipeline.REFIT_RATIO), and goes on from that fit.
     sequence_refit: bool = True
     # ... and when the labelling taken from its neighbour's fit overrides the detector's
-    # left and right for the second frame running: the detector swaps a frame's sides now
-    # and then, so a chain that keeps overriding it carries a wrong anchor's labelling.
+    # left and right of the same part for the second frame running: the detector swaps a
+    # frame's legs or arms now and then, so a chain that keeps overriding it carries a
+    # wrong anchor's labelling.
     sequence_side_refit: bool = True
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:

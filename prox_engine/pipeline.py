@@ -147,9 +147,9 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``). Where that
     lost the keypoints or keeps overriding the detector's sides (:func:`refit_reason`),
     the frame is fitted again from scratch, and the sequence goes on from that fit, with
-    its own shape: a warm start that lost the keypoints may still end
-    near them at a wrong depth (a lying body 30 cm near, 13.0 px off against the fresh
-    fit's 13.4), which the fresh fit's scale search does not inherit."""
+    its own shape: a warm start that lost the keypoints may still end near them at a
+    wrong depth (a lying body 30 cm near, 13.0 px off against the fresh fit's 13.4),
+    which the fresh fit's scale search does not inherit."""
     results = fitter.fit([frame], warm_start=previous.params,
                          previous_keypoints=previous.keypoints[None])
     why = refit_reason(fitter.config, _error_px(fitter, results[0], frame), anchor_px,
@@ -169,15 +169,17 @@ def refit_reason(config: FitConfig, error_px: float, anchor_px: float,
     ending ``error_px`` from the keypoints, relabelled ``swapped``, whose neighbour was
     relabelled ``previous_swapped``): the fit lost the keypoints (over REFIT_RATIO times
     the anchor's error and over REFIT_MIN_PX), or, with ``sequence_side_refit``, the
-    chain overrode the detector's left and right for the second frame running."""
+    chain overrode the detector's left and right of the same part (legs or arms) for the
+    second frame running."""
     if not config.sequence_refit:
         return ""
     if error_px > max(REFIT_RATIO * anchor_px, REFIT_MIN_PX):
         return (f"{error_px:.0f} px off from its neighbour's fit ({anchor_px:.0f} for the "
                 "anchor)")
-    if config.sequence_side_refit and previous_swapped and swapped:
-        return ("its neighbour's fit overrode the detector's left and right for the second "
-                "frame running")
+    again = sorted(set(previous_swapped) & set(swapped))
+    if config.sequence_side_refit and again:
+        return (f"its neighbour's fit overrode the detector's left and right of the "
+                f"{' and '.join(again)} for the second frame running")
     return ""
 
 

@@ -169,16 +169,18 @@ def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_
 
 
 def test_sequence_mode_refits_a_chain_that_keeps_overriding_the_detector():
-    """The detector swaps a frame's sides now and then; a chain whose labelling overrides
-    it for the second frame running carries a wrong anchor's labelling, so that frame is
-    refitted from scratch. One override, or none, keeps the warm fit; a lost fit is
+    """The detector swaps a frame's legs or arms now and then; a chain whose labelling
+    overrides it on the same part for the second frame running carries a wrong anchor's
+    labelling, so that frame is refitted from scratch. One override, or overrides of
+    different parts (two independent detector swaps), keep the warm fit; a lost fit is
     refitted whatever its labels; each reason has its switch."""
     from prox_engine.config import load_config
     from prox_engine.pipeline import refit_reason
 
     prox = load_config("prox")
-    assert "second frame running" in refit_reason(prox, 6.0, 5.0, ["legs"], ["legs"])
-    assert "second frame running" in refit_reason(prox, 6.0, 5.0, ["arms"], ["legs", "arms"])
+    assert "legs for the second frame" in refit_reason(prox, 6.0, 5.0, ["legs"], ["legs"])
+    assert "arms for the second" in refit_reason(prox, 6.0, 5.0, ["arms"], ["legs", "arms"])
+    assert refit_reason(prox, 6.0, 5.0, ["arms"], ["legs"]) == ""
     assert refit_reason(prox, 6.0, 5.0, [], ["legs"]) == ""
     assert refit_reason(prox, 6.0, 5.0, ["legs"], []) == ""
     assert "px off" in refit_reason(prox, 40.0, 5.0, [], [])
