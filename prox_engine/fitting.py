@@ -99,14 +99,17 @@ class Fitter:
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
-        with torch.no_grad():
-            rest = body(body.init_params(1))
-        self.toes = toe_vertices(body.vertex_parts, rest.vertices[0],
-                                 rest.keypoints[0, ANKLES])
+        self.toes = self._toes() if needs_scene and config.scale_free_toes else None
         self.scene_subset, self.penetration_vertices, self.contact_normals = (
             self._scene_vertices() if needs_scene else (None, None, None))
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self.evaluations = 0  # body rows evaluated in the current fit
+
+    def _toes(self) -> torch.Tensor:
+        """(V,) bool: the vertices the scale search does not count as penetrating."""
+        with torch.no_grad():
+            rest = self.body(self.body.init_params(1))
+        return toe_vertices(self.body.vertex_parts, rest.vertices[0], rest.keypoints[0, ANKLES])
 
     def _scene_vertices(self) -> tuple[VertexSubset | None,
                                        tuple[torch.Tensor, torch.Tensor] | None,
@@ -372,8 +375,7 @@ class Fitter:
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
                                  cfg.contact_max_distance, cfg.scale_support,
-                                 joints if cfg.scale_visibility else None,
-                                 self.toes if cfg.scale_free_toes else None)
+                                 joints if cfg.scale_visibility else None, self.toes)
         return scale, cost
 
     def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:
