@@ -99,26 +99,29 @@ class Fitter:
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
-        self.toes = self._toes() if needs_scene and config.scale_free_toes else None
-        self.scene_subset, self.penetration_vertices, self.contact_normals = (
-            self._scene_vertices() if needs_scene else (None, None, None))
+        self.toes, self.scene_subset, self.penetration_vertices, self.contact_normals = (
+            None, None, None, None)
+        if needs_scene:
+            with torch.no_grad():  # the standing mean body, which both sets are chosen on
+                rest = body(body.init_params(1))
+            if config.scale_free_toes:  # the vertices the scale search does not count
+                self.toes = toe_vertices(body.vertex_parts, rest.vertices[0],
+                                         rest.keypoints[0, ANKLES])
+            self.scene_subset, self.penetration_vertices, self.contact_normals = (
+                self._scene_vertices(rest.vertices[0]))
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self.evaluations = 0  # body rows evaluated in the current fit
 
-    def _toes(self) -> torch.Tensor:
-        """(V,) bool: the vertices the scale search does not count as penetrating."""
-        with torch.no_grad():
-            rest = self.body(self.body.init_params(1))
-        return toe_vertices(self.body.vertex_parts, rest.vertices[0], rest.keypoints[0, ANKLES])
-
-    def _scene_vertices(self) -> tuple[VertexSubset | None,
-                                       tuple[torch.Tensor, torch.Tensor] | None,
-                                       VertexNormals | None]:
-        """The vertices the scene terms read (the penetration term's, the contact
-        vertices and the corners of the faces around them, whose normals they need), and
-        those terms' vertex indices and contact normals within that subset."""
+    def _scene_vertices(self, rest: torch.Tensor) -> tuple[
+            VertexSubset | None, tuple[torch.Tensor, torch.Tensor] | None,
+            VertexNormals | None]:
+        """The vertices the scene terms read (the penetration term's, chosen on the
+        standing mean body ``rest`` (V, 3), the contact vertices and the corners of the
+        faces around them, whose normals they need), and those terms' vertex indices and
+        contact normals within that subset."""
         body = self.body
-        penetration = (losses.penetration_vertices(body, self.config.penetration_spacing)
+        penetration = (losses.penetration_vertices(body, self.config.penetration_spacing,
+                                                   rest)
                        if self.config.uses("penetration") else None)
         contact = torch.cat(self.contact_part_ids) if self.contact_part_ids else None
         ids = [] if penetration is None else [penetration[0]]

@@ -36,19 +36,20 @@ def upright(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
     return gmof(angle ** 2, rho)
 
 
-def penetration_vertices(body: BodyModel, spacing: float
+def penetration_vertices(body: BodyModel, spacing: float, rest: torch.Tensor | None = None
                          ) -> tuple[torch.Tensor, torch.Tensor]:
     """The scene vertices (indices) that the penetration term reads, and how many scene
     vertices each stands for: one per cell of a grid of ``spacing`` (m) over the standing
-    mean body, counted for the cell's vertices; every one, once each, at 0. anny's face,
-    hands and feet hold two thirds of its vertices a few millimetres apart, its trunk and
-    limbs a centimetre or more."""
+    mean body (``rest`` (V, 3), posed here if not given), counted for the cell's vertices;
+    every one, once each, at 0. anny's face, hands and feet hold two thirds of its
+    vertices a few millimetres apart, its trunk and limbs a centimetre or more."""
     ids = torch.nonzero(body.scene_vertices).flatten()
     if spacing <= 0:
         return ids, torch.ones(len(ids))
-    with torch.no_grad():
-        rest = body(body.init_params(1)).vertices[0, ids]
-    kept, counts = grid_subsample(rest, spacing)
+    if rest is None:
+        with torch.no_grad():
+            rest = body(body.init_params(1)).vertices[0]
+    kept, counts = grid_subsample(rest[ids], spacing)
     return ids[kept], counts.float()
 
 
