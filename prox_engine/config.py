@@ -86,6 +86,13 @@ class FitConfig:
     # both), fitted side by side through the next stage, and the lowest objective is kept:
     # an arm seen from the front projects alike pointing forward or back.
     arm_restarts: bool = True
+    # After the arm choice, each leg whose ankle the detector clearly saw is also restarted
+    # with its shin turned about the knee onto the ankle's other point at the shin's
+    # length on its camera ray (a shin seen from in front projects alike tucked back, its
+    # foot in the air or on a footrest, or down to the floor), fitted side by side through
+    # the next stage; each frame keeps the lowest objective plus start_scene_weight times
+    # the scale search's cost: the keypoints cannot tell the two apart, the scene can.
+    leg_restarts: bool = False
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

@@ -15,13 +15,20 @@ from . import lbfgs, losses
 from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
-from .geometry import VertexNormals, vertex_normals
+from .geometry import VertexNormals, turned_onto_ray, vertex_normals
 from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
                         Keypoints, ankle_seen, side_swap)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
 
+
+# Per leg, the knee and the ankle-and-foot keypoints (BODY_25) that a shin restart
+# mirrors, and the least the ankle must move for the restart to be tried (m).
+SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
+MIRROR_MIN = 0.1
+MIRROR_ITERATIONS = 20  # L-BFGS iterations that pose a restarted leg (keypoints only)
+MIRROR_REACH = 0.05  # a restart whose keypoints end farther from their goal is not tried
 
 # Terms that read the posed mesh; stages without them pose keypoints and spheres only,
 # and stages with the scene terms alone pose only the vertices those read.
@@ -189,9 +196,11 @@ class Fitter:
             labels = self._closest_labelling(target, conf, previous_keypoints)
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
-        # Rows per frame fitted side by side (starts, then arm restarts) and the stage
-        # after which each frame keeps its best row.
+        # Rows per frame fitted side by side (starts, then arm restarts, then leg
+        # restarts), the stage after which each frame keeps its best row, and whether the
+        # scene's cost takes part in that choice (it does for starts and legs).
         keep, choose_after = len(labels) // len(frames), self.config.start_stages
+        by_scene = True
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
                      seen.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
@@ -229,15 +238,21 @@ class Fitter:
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choose_after:
-                best = self._best_rows(rows.params, rows.seen, final, keep,
-                                       by_scene=choose_after == self.config.start_stages)
+                best = self._best_rows(rows.params, rows.seen, final, keep, by_scene)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
             if (warm_start is None and self.config.arm_restarts
                     and index + 1 == self.config.start_stages < len(stages)):
                 variants = self.body.arm_restarts(rows.params)
                 if variants:
                     rows = rows.widened(variants)
-                    keep, choose_after = 1 + len(variants), index + 2
+                    keep, choose_after, by_scene = 1 + len(variants), index + 2, False
+            if (warm_start is None and self.config.leg_restarts and keep == 1
+                  and index == self.config.start_stages and index + 1 < len(stages)
+                  and self._scales_searched()):
+                variants = self._mirrored_shins(rows)
+                if variants:
+                    rows = rows.widened(variants)
+                    keep, choose_after, by_scene = 1 + len(variants), index + 2, True
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
@@ -269,6 +284,49 @@ class Fitter:
                 params, seen)[1]
         score = score.view(-1, keep)
         return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
+
+    def _mirrored_shins(self, rows: _Rows) -> list[Params]:
+        """Per lower leg, a copy of ``rows.params`` with that shin and its foot turned
+        about the knee until the ankle lies on the other point of its camera ray at the
+        shin's length (a shin seen from in front projects alike tucked back with the foot
+        in the air, or down to the floor), the rest of the body held; none for a leg whose
+        ankle no row's detector clearly saw, moves by less than MIRROR_MIN or cannot be
+        posed there within MIRROR_REACH (a straight leg would bend forward). Rows where
+        it does not apply keep their pose."""
+        body = self.body
+        with torch.no_grad():
+            kp = body(rows.params, vertices=False).keypoints[:, BODY]
+        goals, useful = [], []
+        for knee, chain in SHINS:
+            turned = turned_onto_ray(kp[:, knee], kp[:, chain])
+            moves = (turned[:, 0] - kp[:, chain[0]]).norm(dim=-1) >= MIRROR_MIN
+            useful.append((rows.conf[:, chain[0]] > SEEN) & moves)
+            goal = kp.clone()
+            goal[:, chain] = torch.where(useful[-1][:, None, None], turned, kp[:, chain])
+            goals.append(goal)
+        legs = [i for i, u in enumerate(useful) if u.any()]
+        if not legs:
+            return []
+        count = len(kp)  # every leg's restarts posed at once, one row group each
+        params = {k: v.repeat(len(legs), *[1] * (v.dim() - 1)) for k, v in rows.params.items()}
+        goal = torch.cat([goals[i] for i in legs])
+
+        def objective() -> Callable[[slice], torch.Tensor]:
+            keypoints = body(params, vertices=False).keypoints[:, BODY]
+            cost = ((keypoints - goal) ** 2).sum((1, 2)) * 1e4 + (
+                self.config.joint_limit_weight * body.joint_limits(params))
+            return lambda r: cost[r].sum()
+
+        self._minimise([params[n] for n in body.pose_group()], objective, "leg restart",
+                       lbfgs.row_groups(len(goal), len(goal)), max_iter=MIRROR_ITERATIONS)
+        with torch.no_grad():
+            missed = (body(params, vertices=False).keypoints[:, BODY] - goal).norm(dim=-1)
+        variants = []
+        for n, leg in enumerate(legs):
+            rows_of_leg = slice(n * count, (n + 1) * count)
+            if bool((useful[leg] & (missed[rows_of_leg].max(1).values < MIRROR_REACH)).any()):
+                variants.append({k: v[rows_of_leg].detach().clone() for k, v in params.items()})
+        return variants
 
     def _announce(self, stage: str) -> None:
         if self.on_stage is not None:

@@ -125,6 +125,22 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     return eye + s[..., None] * k + c[..., None] * (k @ k)
 
 
+def turned_onto_ray(pivot: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """``points`` (..., N, 3) in camera coordinates turned rigidly about ``pivot``
+    (..., 3) until the first lies on the other point of its camera ray at its distance
+    from the pivot: a limb seen from in front projects alike pointing toward the camera
+    or away from it. A first point whose ray meets that sphere once stays put."""
+    first = points[..., 0, :]
+    ray = first / first.norm(dim=-1, keepdim=True)
+    other = (2 * (ray * pivot).sum(-1, keepdim=True) - first.norm(dim=-1, keepdim=True)) * ray
+    was, goes = first - pivot, other - pivot
+    axis = torch.linalg.cross(was, goes, dim=-1)
+    angle = torch.atan2(axis.norm(dim=-1), (was * goes).sum(-1))
+    turn = axis_angle_to_matrix(axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                                * angle[..., None])
+    return pivot[..., None, :] + (points - pivot[..., None, :]) @ turn.transpose(-1, -2)
+
+
 def matrix_to_axis_angle(r: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`axis_angle_to_matrix` (roma's, differentiable away from pi)."""
     import roma

@@ -538,12 +538,47 @@ def test_arm_restarts_bring_an_arm_seen_end_on_forward(body):
     assert float(error.max()) < 0.06, error
 
 
-def _standing_params(body, cam2world: np.ndarray) -> dict[str, torch.Tensor]:
-    """Camera-frame parameters of a mean standing body on the floor at the camera's target,
-    facing the camera."""
+def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_depth(body):
+    """A seated body under a tilted, rolled, off-centre camera: each leg's restart turns
+    the shin and foot about the knee until the ankle lies on the other point of its camera
+    ray at the shin's length, so the ankle projects where it did (within 5 px) but lies
+    where the geometry says in depth, the foot keeps its shape, and the rest of the body
+    stays put. A leg whose ankle the detector did not see gets no restart."""
+    from prox_engine.fitting import SHINS, _Rows
+
+    cam2world = tilted_camera()
+    params = _standing_params(body, cam2world, "sitting")
+    with torch.no_grad():
+        before = body(params, vertices=False).keypoints[0, :25]
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25] > 0.5, [None], [()])
+    fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
+    variants = fitter._mirrored_shins(rows)
+    assert len(variants) == 2
+    for (knee, chain), variant in zip(SHINS, variants):
+        with torch.no_grad():
+            after = body(variant, vertices=False).keypoints[0, :25]
+        ankle, was = after[chain[0]], before[chain[0]]
+        assert float((CAMERA.project(ankle) - CAMERA.project(was)).norm()) < 5.0
+        depth = 2 * float(was / was.norm() @ before[knee]) - float(was.norm())
+        assert abs(depth - float(was.norm())) > 0.1  # a real move in depth
+        assert abs(float(ankle.norm()) - depth) < 0.02
+        assert abs(float((ankle - after[knee]).norm() - (was - before[knee]).norm())) < 0.01
+        foot = (after[chain] - ankle).norm(dim=1) - (before[chain] - was).norm(dim=1)
+        assert float(foot.abs().max()) < 0.01
+        others = [j for j in range(25) if j not in (*chain, knee)]
+        assert float((after[others] - before[others]).norm(dim=1).max()) < 0.02
+    rows.conf[:, SHINS[0][1][0]] = 0.0  # the right ankle unseen
+    assert len(fitter._mirrored_shins(rows)) == 1
+
+
+def _standing_params(body, cam2world: np.ndarray, posture: str = "standing"
+                     ) -> dict[str, torch.Tensor]:
+    """Camera-frame parameters of a mean body in a start ``posture`` at the camera's
+    target, its lowest point on the floor, facing the camera."""
     from prox_engine.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 
-    params = body.init_params(1)
+    params = body.init_params(1, posture)
     _, shift = _placed(body, params, cam2world)
     world2cam = torch.tensor(np.linalg.inv(cam2world), dtype=torch.float32)
     params["global_orient"] = matrix_to_axis_angle(
