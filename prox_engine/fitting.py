@@ -200,7 +200,7 @@ class Fitter:
         # restarts), the stage after which each frame keeps its best row, and whether the
         # scene's cost takes part in that choice (it does for starts and legs).
         keep, choose_after = len(labels) // len(frames), self.config.start_stages
-        by_scene = True
+        by_scene, tried = True, None  # tried: (rows,) which are candidates (None: all)
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
                      seen.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
@@ -238,8 +238,9 @@ class Fitter:
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choose_after:
-                best = self._best_rows(rows.params, rows.seen, final, keep, by_scene)
+                best = self._best_rows(rows.params, rows.seen, final, keep, by_scene, tried)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
+                tried = None
             if (warm_start is None and self.config.arm_restarts
                     and index + 1 == self.config.start_stages < len(stages)):
                 variants = self.body.arm_restarts(rows.params)
@@ -249,10 +250,12 @@ class Fitter:
             if (warm_start is None and self.config.leg_restarts and keep == 1
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
-                variants = self._mirrored_shins(rows)
-                if variants:
-                    rows = rows.widened(variants)
-                    keep, choose_after, by_scene = 1 + len(variants), index + 2, True
+                restarts = self._mirrored_shins(rows)
+                if restarts:
+                    tried = torch.stack([torch.ones(len(rows.labels), dtype=torch.bool),
+                                         *(t for _, t in restarts)], 1).flatten()
+                    rows = rows.widened([v for v, _ in restarts])
+                    keep, choose_after, by_scene = 1 + len(restarts), index + 2, True
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
@@ -273,26 +276,30 @@ class Fitter:
             for i, f in enumerate(frames)]
 
     def _best_rows(self, params: Params, seen: torch.Tensor, terms: dict[str, torch.Tensor],
-                   keep: int, by_scene: bool) -> list[int]:
+                   keep: int, by_scene: bool, tried: torch.Tensor | None = None) -> list[int]:
         """Rows (one per frame) of the candidates, ``keep`` per frame, with the lowest
         objective (``terms``) plus, ``by_scene`` with a scale search,
         ``start_scene_weight`` times how badly each can meet the scene at its best scale
-        (with the joints ``seen`` (rows, 25) in view)."""
+        (with the joints ``seen`` (rows, 25) in view); only the rows ``tried`` ((rows,)
+        bool; None: all) compete, and only theirs are searched."""
         score = sum(terms.values())
+        rows = torch.arange(len(score)) if tried is None else tried.nonzero().flatten()
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
-            score = score + self.config.start_scene_weight * self._scale_search(
-                params, seen)[1]
+            cost = self._scale_search({k: v[rows] for k, v in params.items()}, seen[rows])[1]
+            score = score.index_add(0, rows, self.config.start_scene_weight * cost)
+        if tried is not None:
+            score = score.masked_fill(~tried, torch.inf)
         score = score.view(-1, keep)
         return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
 
-    def _mirrored_shins(self, rows: _Rows) -> list[Params]:
+    def _mirrored_shins(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
         """Per lower leg, a copy of ``rows.params`` with that shin and its foot turned
         about the knee until the ankle lies on the other point of its camera ray at the
         shin's length (a shin seen from in front projects alike tucked back with the foot
-        in the air, or down to the floor), the rest of the body held; none for a leg whose
-        ankle no row's detector clearly saw, moves by less than MIRROR_MIN or cannot be
-        posed there within MIRROR_REACH (a straight leg would bend forward). Rows where
-        it does not apply keep their pose."""
+        in the air, or down to the floor), the rest of the body held, and which rows are
+        restarts worth trying ((rows,) bool): those whose ankle the detector clearly saw,
+        moves by at least MIRROR_MIN and could be posed there within MIRROR_REACH (a
+        straight leg would bend forward); none for a leg without such a row."""
         body = self.body
         with torch.no_grad():
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
@@ -321,12 +328,14 @@ class Fitter:
                        lbfgs.row_groups(len(goal), len(goal)), max_iter=MIRROR_ITERATIONS)
         with torch.no_grad():
             missed = (body(params, vertices=False).keypoints[:, BODY] - goal).norm(dim=-1)
-        variants = []
+        restarts = []
         for n, leg in enumerate(legs):
             rows_of_leg = slice(n * count, (n + 1) * count)
-            if bool((useful[leg] & (missed[rows_of_leg].max(1).values < MIRROR_REACH)).any()):
-                variants.append({k: v[rows_of_leg].detach().clone() for k, v in params.items()})
-        return variants
+            tried = useful[leg] & (missed[rows_of_leg].max(1).values < MIRROR_REACH)
+            if bool(tried.any()):
+                restarts.append(({k: v[rows_of_leg].detach().clone() for k, v in params.items()},
+                                 tried))
+        return restarts
 
     def _announce(self, stage: str) -> None:
         if self.on_stage is not None:

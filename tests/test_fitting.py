@@ -553,9 +553,9 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
     conf = torch.full((1, N_KEYPOINTS), 0.9)
     rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25] > 0.5, [None], [()])
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
-    variants = fitter._mirrored_shins(rows)
-    assert len(variants) == 2
-    for (knee, chain), variant in zip(SHINS, variants):
+    restarts = fitter._mirrored_shins(rows)
+    assert [bool(tried) for _, tried in restarts] == [True, True]
+    for (knee, chain), (variant, _) in zip(SHINS, restarts):
         with torch.no_grad():
             after = body(variant, vertices=False).keypoints[0, :25]
         ankle, was = after[chain[0]], before[chain[0]]
@@ -570,6 +570,21 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
         assert float((after[others] - before[others]).norm(dim=1).max()) < 0.02
     rows.conf[:, SHINS[0][1][0]] = 0.0  # the right ankle unseen
     assert len(fitter._mirrored_shins(rows)) == 1
+
+
+def test_only_the_restarts_tried_compete_for_a_frame(body):
+    """Frames fitted together share their rows' layout, so a frame none of whose legs is
+    worth restarting carries copies of its body: those never win, even on a lower
+    objective, and a frame's tried restart still can."""
+    cam2world = tilted_camera()
+    params = {k: v.repeat(4, *[1] * (v.dim() - 1))
+              for k, v in _standing_params(body, cam2world).items()}
+    terms = {"data": torch.tensor([5.0, 1.0, 5.0, 1.0])}
+    fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
+    seen = torch.ones(4, 25, dtype=torch.bool)
+    tried = torch.tensor([True, False, True, True])
+    assert fitter._best_rows(params, seen, terms, 2, True, tried) == [0, 3]
+    assert fitter._best_rows(params, seen, terms, 2, False) == [1, 3]
 
 
 def _standing_params(body, cam2world: np.ndarray, posture: str = "standing"
