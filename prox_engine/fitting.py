@@ -23,12 +23,14 @@ from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
 
 
-# Per leg, the knee and the ankle-and-foot keypoints (BODY_25) that a shin restart
-# mirrors, and the least the ankle must move for the restart to be tried (m).
+# Leg restarts (FitConfig.leg_restarts): per leg, the knee and the ankle-and-foot
+# keypoints (BODY_25) turned about it; the least the ankle must move for a restart to be
+# tried (m); the keypoint-only L-BFGS iterations that pose it; and how far (m) from their
+# goal its keypoints may end (farther, a straight leg would have to bend forward).
 SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
 MIRROR_MIN = 0.1
-MIRROR_ITERATIONS = 20  # L-BFGS iterations that pose a restarted leg (keypoints only)
-MIRROR_REACH = 0.05  # a restart whose keypoints end farther from their goal is not tried
+MIRROR_ITERATIONS = 20
+MIRROR_REACH = 0.05
 
 # Terms that read the posed mesh; stages without them pose keypoints and spheres only,
 # and stages with the scene terms alone pose only the vertices those read.
@@ -250,7 +252,7 @@ class Fitter:
             if (warm_start is None and self.config.leg_restarts and keep == 1
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
-                restarts = self._mirrored_shins(rows)
+                restarts = self._leg_restarts(rows)
                 if restarts:
                     tried = torch.stack([torch.ones(len(rows.labels), dtype=torch.bool),
                                          *(t for _, t in restarts)], 1).flatten()
@@ -292,7 +294,7 @@ class Fitter:
         score = score.view(-1, keep)
         return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
 
-    def _mirrored_shins(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
+    def _leg_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
         """Per lower leg, a copy of ``rows.params`` with that shin and its foot turned
         about the knee until the ankle lies on the other point of its camera ray at the
         shin's length (a shin seen from in front projects alike tucked back with the foot

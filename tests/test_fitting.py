@@ -553,7 +553,7 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
     conf = torch.full((1, N_KEYPOINTS), 0.9)
     rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25] > 0.5, [None], [()])
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
-    restarts = fitter._mirrored_shins(rows)
+    restarts = fitter._leg_restarts(rows)
     assert [bool(tried) for _, tried in restarts] == [True, True]
     for (knee, chain), (variant, _) in zip(SHINS, restarts):
         with torch.no_grad():
@@ -569,7 +569,7 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
         others = [j for j in range(25) if j not in (*chain, knee)]
         assert float((after[others] - before[others]).norm(dim=1).max()) < 0.02
     rows.conf[:, SHINS[0][1][0]] = 0.0  # the right ankle unseen
-    assert len(fitter._mirrored_shins(rows)) == 1
+    assert len(fitter._leg_restarts(rows)) == 1
 
 
 def test_only_the_restarts_tried_compete_for_a_frame(body):
