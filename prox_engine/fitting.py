@@ -16,18 +16,16 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, turned_onto_ray, vertex_normals
-from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
+from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS,
                         Keypoints, ankle_seen, side_swap)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
 
 
-# Leg restarts (FitConfig.leg_restarts): per leg, the knee and the ankle-and-foot
-# keypoints (BODY_25) turned about it; the least the ankle must move for a restart to be
-# tried (m); the keypoint-only L-BFGS iterations that pose it; and how far (m) from their
-# goal its keypoints may end (farther, a straight leg would have to bend forward).
-SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
+# Leg restarts (FitConfig.leg_restarts): the least the ankle must move for a restart to
+# be tried (m); the keypoint-only L-BFGS iterations that pose it; and how far (m) from
+# their goal its keypoints may end (farther, a straight leg would have to bend forward).
 MIRROR_MIN = 0.1
 MIRROR_ITERATIONS = 20
 MIRROR_REACH = 0.05

@@ -42,6 +42,8 @@ TORSO_EDGES = [(2, 9), (5, 12)]  # right shoulder - right hip, left shoulder - l
 SHOULDERS = (2, 5)
 MID_HIP, NECK = 8, 1  # the trunk, for the upright prior
 ANKLES = [11, 14]  # right, left: a frame cut off at the knees has neither
+# Per leg (right, left), the knee and what hangs from it: ankle, big toe, small toe, heel.
+SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
 SEEN = 0.5  # detector confidence of a joint it clearly saw
 MAX_PIXEL = 1e6  # no image is this large; squares of larger values overflow float32
 

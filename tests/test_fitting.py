@@ -544,10 +544,11 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
     ray at the shin's length, so the ankle projects where it did (within 5 px) but lies
     where the geometry says in depth, the foot keeps its shape, and the rest of the body
     stays put. A leg whose ankle the detector did not see gets no restart."""
-    from prox_engine.fitting import SHINS, _Rows
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import SHINS
 
     cam2world = tilted_camera()
-    params = _standing_params(body, cam2world, "sitting")
+    params = _posed_params(body, cam2world, "sitting")
     with torch.no_grad():
         before = body(params, vertices=False).keypoints[0, :25]
     conf = torch.full((1, N_KEYPOINTS), 0.9)
@@ -578,7 +579,7 @@ def test_only_the_restarts_tried_compete_for_a_frame(body):
     objective, and a frame's tried restart still can."""
     cam2world = tilted_camera()
     params = {k: v.repeat(4, *[1] * (v.dim() - 1))
-              for k, v in _standing_params(body, cam2world).items()}
+              for k, v in _posed_params(body, cam2world).items()}
     terms = {"data": torch.tensor([5.0, 1.0, 5.0, 1.0])}
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
     seen = torch.ones(4, 25, dtype=torch.bool)
@@ -587,8 +588,8 @@ def test_only_the_restarts_tried_compete_for_a_frame(body):
     assert fitter._best_rows(params, seen, terms, 2, False) == [1, 3]
 
 
-def _standing_params(body, cam2world: np.ndarray, posture: str = "standing"
-                     ) -> dict[str, torch.Tensor]:
+def _posed_params(body, cam2world: np.ndarray, posture: str = "standing"
+                  ) -> dict[str, torch.Tensor]:
     """Camera-frame parameters of a mean body in a start ``posture`` at the camera's
     target, its lowest point on the floor, facing the camera."""
     from prox_engine.geometry import axis_angle_to_matrix, matrix_to_axis_angle
@@ -617,7 +618,7 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
     scene = Scene(floor.vertices, floor.faces, cam2world,
                   compute_sdf(floor.vertices, floor.faces, dim=64, padding=0.5),
                   sample_spacing=0.1)
-    params = _standing_params(body, cam2world)
+    params = _posed_params(body, cam2world)
     with torch.no_grad():
         truth = body(params).keypoints[0, :25]
 
@@ -648,7 +649,7 @@ def test_rescale_scales_the_body_about_the_camera(body):
     alone, without the mesh: the whole mesh must still come out scaled about the camera
     centre (its projection kept), within a centimetre, seen by a tilted camera."""
     cam2world = tilted_camera()
-    params = _standing_params(body, cam2world)
+    params = _posed_params(body, cam2world)
     with torch.no_grad():
         before = body(params).vertices[0]
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
@@ -670,7 +671,7 @@ def test_sequence_mode_can_search_each_frames_scale(body):
     carried over from the previous frame stays."""
     cam2world = tilted_camera()
     scene = floor_scene(cam2world)
-    params = _standing_params(body, cam2world)
+    params = _posed_params(body, cam2world)
     with torch.no_grad():
         out = body(params)
     truth = out.keypoints[0, :25]
