@@ -60,13 +60,22 @@ class Scene:
 
     def penetration_depth(self, points_cam: torch.Tensor, exact_band: float) -> torch.Tensor:
         """How deep (>= 0, differentiable) camera-frame points (..., 3) are inside the
-        scene: from the SDF grid, and, for points the grid puts within ``exact_band`` of a
-        surface, from the nearest triangles themselves, which resolves furniture thinner
-        than a voxel."""
+        scene: from the SDF grid, and, for points the grid puts less than ``exact_band``
+        inside a surface or less than a voxel outside it, from the nearest triangles
+        themselves, which resolves furniture thinner than a voxel.
+
+        Farther outside no point can be inside: the grid's corners hold exact distances
+        near surfaces, which change by at most the distance moved, so at a point inside
+        every corner of its cell reads less than its distance from the point, and the
+        trilinear blend of those is under sqrt(3) / 2 of a voxel. Skipping the exact query
+        there halves the points queried. The two disagree only where a noisy scan edge
+        flips the nearest face's sign (4 of 274,000 readings on seed 0's sofa, read 2-6 cm
+        inside): there the grid's reading, outside, stands."""
         world = self.to_world(points_cam)
         grid = self.sdf(world)
         flat, values = world.reshape(-1, 3), grid.reshape(-1)
-        near = torch.nonzero(values.detach().abs() < exact_band).flatten()
+        read = values.detach()
+        near = torch.nonzero((read > -exact_band) & (read < self.sdf.voxel_size)).flatten()
         if len(near):
             exact, _ = self._triangle_distance(flat[near])
             values = values.index_put((near,), exact.to(values.dtype))

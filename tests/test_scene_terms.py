@@ -154,6 +154,38 @@ def test_penetration_inside_a_slab_thinner_than_a_voxel_pushes_out():
     assert energy.item() == 0 and above.grad.abs().max() == 0
 
 
+def test_penetration_depth_skips_the_exact_query_only_where_nothing_can_be_inside():
+    """Around a tilted slab thinner than a voxel and a box, seen by a tilted, off-centre
+    camera: every point the grid reads more than a voxel outside is outside, so reading
+    the exact distances only below that changes no depth (against exact distances for
+    every point near a surface), while it skips a good share of the points there."""
+    from prox_engine.synthetic import look_at
+
+    slab = trimesh.creation.box(extents=(1.2, 0.8, 0.02))
+    slab.apply_transform(trimesh.transformations.rotation_matrix(0.4, [1.0, 0.3, 0.0]))
+    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5))
+    box.apply_translation([0.3, 1.4, 0.1])
+    mesh = trimesh.util.concatenate([slab, box])
+    cam2world = look_at(np.array([0.7, -2.5, 1.3]), np.array([0.1, 0.2, 0.0]))
+    scene = Scene(mesh.vertices, mesh.faces, cam2world,
+                  compute_sdf(mesh.vertices, mesh.faces, dim=40, padding=0.5),
+                  sample_spacing=0.02)
+    voxel = scene.sdf.voxel_size
+    world = torch.from_numpy(mesh.sample(4000, seed=0)).float()
+    world = world + torch.randn(len(world), 3, generator=torch.Generator().manual_seed(0)) * voxel
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    camera = (world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation
+    grid = scene.signed_distance(camera)
+    near = grid.abs() < 2 * voxel
+    exact, _ = scene._triangle_distance(scene.to_world(camera))  # as the term reads them
+    expected = torch.relu(-torch.where(near, exact.float(), grid))
+    depth = scene.penetration_depth(camera, exact_band=2 * voxel)
+    assert torch.allclose(depth, expected, atol=1e-5)
+    assert (exact[near & (grid < 0)] < 0).any()  # the slab is read inside where it is
+    skipped = near & (grid >= voxel)
+    assert skipped.sum() > 0.2 * near.sum() and (exact[skipped] > 0).all()
+
+
 def test_contact_normals_of_a_vertex_set_are_the_mesh_normals(body):
     """The contact term's normals, from the faces around the contact vertices only, are
     the whole mesh's area-weighted vertex normals at those vertices (repeated vertices
