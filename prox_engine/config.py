@@ -66,6 +66,9 @@ class FitConfig:
     # frame's legs or arms now and then, so a chain that keeps overriding it carries a
     # wrong anchor's labelling.
     sequence_side_refit: bool = True
+    # ... and when its fit floats over every surface (quality.FLOATING), keeping the fit
+    # from scratch if that floats less (see pipeline._unless_floating).
+    sequence_floating_refit: bool = True
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.

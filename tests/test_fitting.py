@@ -687,3 +687,37 @@ def test_sequence_mode_can_search_each_frames_scale(body):
 
     searched, carried = error(True), error(False)
     assert searched < 0.08 and carried > 0.2, (searched, carried)
+
+
+def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor(body):
+    """Sequence mode, warm-started from a previous fit 15 % too small and too near (the
+    same pixels, its soles 24 cm over the floor), which the frame's own stages keep: the
+    frame is fitted again from scratch, and that fit, standing on the floor, is kept; the
+    ablation keeps the floating one."""
+    from prox_engine.fitting import FitResult
+    from prox_engine.pipeline import _fit_from
+    from prox_engine.quality import FLOATING, underside_gap
+
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    params = _posed_params(body, cam2world)
+    with torch.no_grad():
+        truth = body(params).keypoints[0, :25]
+    too_near = {k: v.clone() for k, v in params.items()}
+    Fitter(body, CAMERA, load_config("prox"), scene)._rescale(too_near, torch.tensor([0.85]),
+                                                               frames=1)
+    with torch.no_grad():
+        out = body(too_near)
+    previous = FitResult("previous", too_near, out.vertices[0], out.keypoints[0], {}, 0.0)
+    assert underside_gap(previous.vertices, scene) > 0.2
+
+    def fit(config: str):
+        fitter = Fitter(body, CAMERA, load_config(config), scene)
+        return _fit_from(fitter, frame_of(truth), previous, anchor_px=1.0)[0]
+
+    kept, ablation = fit("prox"), fit("prox-no-floating-refit")
+    assert underside_gap(ablation.vertices, scene) > FLOATING
+    assert underside_gap(kept.vertices, scene) < FLOATING
+    assert any("kept the fit from scratch" in e for e in kept.events), kept.events
+    assert kept.stage_evaluations["discarded_fit"] > 0
+    assert float((kept.keypoints[:25] - truth).norm(dim=1).mean()) < 0.08
