@@ -46,9 +46,7 @@ def underside_gap(vertices: torch.Tensor, scene: Scene) -> float:
     body's back) is above the first surface straight below it; inf beyond 50 cm."""
     height = scene.to_world(vertices)[:, 2]
     under = vertices[height < height.min() + UNDERSIDE][::4]
-    down = -scene.up_in_camera().expand_as(under)
-    return float(scene.first_hits(under, down, torch.zeros(len(under)),
-                                  torch.full((len(under),), REACH)).min())
+    return scene.nearest_hit(under, -scene.up_in_camera().expand_as(under), REACH)
 
 
 def frame_flags(stats: dict, vertices: torch.Tensor, joints: torch.Tensor,

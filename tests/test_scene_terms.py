@@ -186,6 +186,39 @@ def test_penetration_depth_skips_the_exact_query_only_where_nothing_can_be_insid
     assert skipped.sum() > 0.2 * near.sum() and (exact[skipped] > 0).all()
 
 
+def test_nearest_hit_is_the_first_hit_of_the_nearest_ray():
+    """Rays straight down from points over a floor and a 3 cm tabletop, seen by a tilted,
+    off-centre camera: stepping a few samples at a time and stopping at the first that
+    meet gives the least of every ray's first hit, and inf where none meets."""
+    from prox_engine.synthetic import look_at
+
+    table = trimesh.creation.box(extents=(0.8, 0.6, 0.03))
+    table.apply_translation([0.3, 0.2, 0.7])
+    mesh = trimesh.util.concatenate([plane_mesh(size=4.0), table])
+    cam2world = look_at(np.array([1.5, -2.5, 1.6]), np.array([0.2, 0.3, 0.5]))
+    scene = Scene(mesh.vertices, mesh.faces, cam2world,
+                  compute_sdf(mesh.vertices, mesh.faces, dim=64, padding=0.5),
+                  sample_spacing=0.02)
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    shift = torch.tensor(cam2world[:3, 3], dtype=torch.float32)
+    down = -scene.up_in_camera()
+    generator = torch.Generator().manual_seed(1)
+    for low, high, expected in ((0.75, 0.78, 0.03), (0.25, 0.45, 0.25), (0.95, 1.2, None)):
+        xy = torch.rand(40, 2, generator=generator) * 0.5 + torch.tensor([0.05, -0.05])
+        z = low + torch.rand(40, 1, generator=generator) * (high - low)
+        starts = (torch.cat([xy, z], 1) - shift) @ rotation
+        if expected is None:  # only those beside the table, up to 0.9 m over the floor
+            starts = (torch.cat([xy + 1.0, z], 1) - shift) @ rotation
+        directions = down.expand_as(starts)
+        first = scene.first_hits(starts, directions, torch.zeros(40), torch.full((40,), 0.5))
+        nearest = scene.nearest_hit(starts, directions, 0.5)
+        assert nearest == float(first.min()), (nearest, first.min())
+        if expected is None:
+            assert nearest == math.inf
+        else:
+            assert nearest <= expected + 0.011
+
+
 def test_contact_normals_of_a_vertex_set_are_the_mesh_normals(body):
     """The contact term's normals, from the faces around the contact vertices only, are
     the whole mesh's area-weighted vertex normals at those vertices (repeated vertices
