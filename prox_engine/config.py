@@ -77,6 +77,10 @@ class FitConfig:
     # With a scale search, the starts are compared by objective + this weight times the
     # search's cost (how badly the body meets the scene at its best scale, 0-2).
     start_scene_weight: float = 0.0
+    # Off, the starts are compared without the posture priors (pose and bending), which
+    # measure how far a posture is from standing straight: a kneeling start paid for that
+    # about ten times what a seated one did for the same keypoints and scene.
+    start_choice_priors: bool = True
     # Where the detector sees the nose and eyes, a start turned away from the camera costs
     # up to this (px^2): the turned-away body with its sides swapped explains the same
     # keypoints, and without the face nothing tells the two apart.

@@ -34,6 +34,9 @@ MIRROR_REACH = 0.05
 # and stages with the scene terms alone pose only the vertices those read.
 SCENE_TERMS = ("penetration", "contact")
 MESH_TERMS = (*SCENE_TERMS, "depth")
+# Priors that measure how far a posture is from the model's rest pose, which the start
+# choice may leave out (FitConfig.start_choice_priors).
+POSTURE_PRIORS = ("pose_prior", "bending")
 
 
 @dataclass
@@ -197,10 +200,12 @@ class Fitter:
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
         # Rows per frame fitted side by side (starts, then arm restarts, then leg
-        # restarts), the stage after which each frame keeps its best row, and whether the
-        # scene's cost takes part in that choice (it does for starts and legs).
+        # restarts), the stage after which each frame keeps its best row, whether the
+        # scene's cost takes part in that choice (it does for starts and legs) and whether
+        # the posture priors do (for restarts; for starts as configured).
         keep, choose_after = len(labels) // len(frames), self.config.start_stages
         by_scene, tried = True, None  # tried: (rows,) which are candidates (None: all)
+        priors = self.config.start_choice_priors
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
                      seen.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
@@ -238,7 +243,8 @@ class Fitter:
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choose_after:
-                best = self._best_rows(rows.params, rows.seen, final, keep, by_scene, tried)
+                best = self._best_rows(rows.params, rows.seen, final, keep, by_scene, tried,
+                                       priors)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
                 tried = None
             if (warm_start is None and self.config.arm_restarts
@@ -246,7 +252,8 @@ class Fitter:
                 variants = self.body.arm_restarts(rows.params)
                 if variants:
                     rows = rows.widened(variants)
-                    keep, choose_after, by_scene = 1 + len(variants), index + 2, False
+                    keep, choose_after = 1 + len(variants), index + 2
+                    by_scene, priors = False, True
             if (warm_start is None and self.config.leg_restarts and keep == 1
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
@@ -255,7 +262,8 @@ class Fitter:
                     tried = torch.stack([torch.ones(len(rows.labels), dtype=torch.bool),
                                          *(t for _, t in restarts)], 1).flatten()
                     rows = rows.widened([v for v, _ in restarts])
-                    keep, choose_after, by_scene = 1 + len(restarts), index + 2, True
+                    keep, choose_after = 1 + len(restarts), index + 2
+                    by_scene, priors = True, True
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
@@ -276,13 +284,15 @@ class Fitter:
             for i, f in enumerate(frames)]
 
     def _best_rows(self, params: Params, seen: torch.Tensor, terms: dict[str, torch.Tensor],
-                   keep: int, by_scene: bool, tried: torch.Tensor | None = None) -> list[int]:
+                   keep: int, by_scene: bool, tried: torch.Tensor | None = None,
+                   priors: bool = True) -> list[int]:
         """Rows (one per frame) of the candidates, ``keep`` per frame, with the lowest
-        objective (``terms``) plus, ``by_scene`` with a scale search,
-        ``start_scene_weight`` times how badly each can meet the scene at its best scale
-        (with the joints ``seen`` (rows, 25) in view); only the rows ``tried`` ((rows,)
-        bool; None: all) compete, and only theirs are searched."""
-        score = sum(terms.values())
+        objective (``terms``; without the POSTURE_PRIORS unless ``priors``) plus,
+        ``by_scene`` with a scale search, ``start_scene_weight`` times how badly each can
+        meet the scene at its best scale (with the joints ``seen`` (rows, 25) in view);
+        only the rows ``tried`` ((rows,) bool; None: all) compete, and only theirs are
+        searched."""
+        score = sum(v for k, v in terms.items() if priors or k not in POSTURE_PRIORS)
         rows = torch.arange(len(score)) if tried is None else tried.nonzero().flatten()
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
             cost = self._scale_search({k: v[rows] for k, v in params.items()}, seen[rows])[1]
