@@ -129,7 +129,8 @@ def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
                                 .read_text()) for name in names)
     assert "temporal" in first["losses"] and "temporal" not in second["losses"]
     assert first["phenotype"] == second["phenotype"]  # shape kept from the anchor frame
-    assert list(first["timings"]["stages"]) == ["final", "contact"]  # keypoints, then scene
+    # keypoints, then scene, then whether the fit floats (pipeline._unless_floating)
+    assert list(first["timings"]["stages"]) == ["final", "contact", "floating_check"]
 
 
 def test_sequence_mode_anchors_on_a_frame_labelled_as_detected(sitting_data, tmp_path):
