@@ -160,7 +160,7 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
         fresh[0].events.append(f"sequence: refitted from scratch, {why}")
         _discard(fresh[0], results[0])
         return fresh
-    if fitter.config.sequence_floating_refit:
+    if fitter.config.sequence_refit and fitter.config.sequence_floating_refit:
         return _unless_floating(fitter, frame, results)
     return results
 
