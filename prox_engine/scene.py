@@ -105,18 +105,14 @@ class Scene:
                    far: torch.Tensor) -> torch.Tensor:
         """Per ray (camera-frame ``starts`` and unit ``directions``, (R, 3)), the distance
         along it, between ``near`` and ``far`` (R,), of the first sample (every 1 cm)
-        within 6 mm of the scan; inf where there is none. The grid SDF picks the samples
-        worth an exact distance."""
+        within 6 mm of the scan (:meth:`_on_surface`); inf where there is none."""
         first = torch.full((len(starts),), math.inf)
         if len(starts) == 0:
             return first
         steps = torch.arange(0.0, float(far.max()) + RAY_STEP, RAY_STEP)
         ray, k = torch.nonzero((steps[None] >= near[:, None]) & (steps[None] <= far[:, None]),
                                as_tuple=True)
-        samples = starts[ray] + directions[ray] * steps[k, None]
-        close = torch.nonzero(self.signed_distance(samples).abs()
-                              < 2 * self.sdf.voxel_size).flatten()
-        met = close[self.exact_signed_distance(samples[close]).abs() < SURFACE]
+        met = self._on_surface(starts[ray] + directions[ray] * steps[k, None])
         return first.scatter_reduce_(0, ray[met], steps[k[met]], "amin")
 
     @torch.no_grad()
@@ -127,16 +123,21 @@ class Scene:
         resting on a surface meets it within a step or two, so a few of its samples need
         exact distances instead of every one near the surface along 50 cm."""
         steps = torch.arange(0.0, far + RAY_STEP, RAY_STEP)
-        steps = steps[steps <= far]
+        steps = steps[steps <= far] if len(starts) else steps[:0]
         for first in range(0, len(steps), chunk):
             step = steps[first:first + chunk]
-            samples = (starts[:, None] + directions[:, None] * step[:, None]).reshape(-1, 3)
-            close = torch.nonzero(self.signed_distance(samples).abs()
-                                  < 2 * self.sdf.voxel_size).flatten()
-            met = close[self.exact_signed_distance(samples[close]).abs() < SURFACE]
+            met = self._on_surface(
+                (starts[:, None] + directions[:, None] * step[:, None]).reshape(-1, 3))
             if len(met):
                 return float(step[met % len(step)].min())
         return math.inf
+
+    def _on_surface(self, samples: torch.Tensor) -> torch.Tensor:
+        """Indices of the camera-frame samples (N, 3) within SURFACE of the scan: the grid
+        SDF picks those worth an exact distance."""
+        close = torch.nonzero(self.signed_distance(samples).abs()
+                              < 2 * self.sdf.voxel_size).flatten()
+        return close[self.exact_signed_distance(samples[close]).abs() < SURFACE]
 
     def visible_scale(self, joints_cam: torch.Tensor, max_scale: float) -> torch.Tensor:
         """Per camera-frame joint (N, 3), the largest scale about the camera centre (up to
