@@ -60,6 +60,20 @@ class FitResult:
     stage_evaluations: dict[str, float] = field(default_factory=dict)  # body rows per frame
     events: list[str] = field(default_factory=list)  # numerical trouble met on the way
     swapped: list[str] = field(default_factory=list)  # parts whose sides were relabelled
+    underside_gap: float | None = None  # m (quality.underside_gap), where already measured
+
+
+@dataclass
+class _Choice:
+    """When each frame keeps one of its candidate rows (after the stage numbered
+    ``after``, counting from 1) and by what (:meth:`Fitter._best_rows`): the objective,
+    with the posture priors if ``priors``, plus the scene's cost if ``by_scene``, among
+    the rows ``tried`` ((rows,) bool; None: all)."""
+
+    after: int
+    by_scene: bool = True
+    priors: bool = True
+    tried: torch.Tensor | None = None
 
 
 @dataclass
@@ -200,12 +214,11 @@ class Fitter:
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
         # Rows per frame fitted side by side (starts, then arm restarts, then leg
-        # restarts), the stage after which each frame keeps its best row, whether the
-        # scene's cost takes part in that choice (it does for starts and legs) and whether
-        # the posture priors do (for restarts; for starts as configured).
-        keep, choose_after = len(labels) // len(frames), self.config.start_stages
-        by_scene, tried = True, None  # tried: (rows,) which are candidates (None: all)
-        priors = self.config.start_choice_priors
+        # restarts), and when and how each frame keeps its best row: the scene's cost
+        # takes part for starts and legs, the posture priors for restarts (for starts as
+        # configured).
+        keep = len(labels) // len(frames)
+        choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors)
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
                      seen.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
@@ -242,18 +255,16 @@ class Fitter:
                 free.append("hand_pose")
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
-            if keep > 1 and index + 1 == choose_after:
-                best = self._best_rows(rows.params, rows.seen, final, keep, by_scene, tried,
-                                       priors)
+            if keep > 1 and index + 1 == choice.after:
+                best = self._best_rows(rows.params, rows.seen, final, keep, choice.by_scene,
+                                       choice.tried, choice.priors)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
-                tried = None
             if (warm_start is None and self.config.arm_restarts
                     and index + 1 == self.config.start_stages < len(stages)):
                 variants = self.body.arm_restarts(rows.params)
                 if variants:
                     rows = rows.widened(variants)
-                    keep, choose_after = 1 + len(variants), index + 2
-                    by_scene, priors = False, True
+                    keep, choice = 1 + len(variants), _Choice(index + 2, by_scene=False)
             if (warm_start is None and self.config.leg_restarts and keep == 1
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
@@ -262,8 +273,7 @@ class Fitter:
                     tried = torch.stack([torch.ones(len(rows.labels), dtype=torch.bool),
                                          *(t for _, t in restarts)], 1).flatten()
                     rows = rows.widened([v for v, _ in restarts])
-                    keep, choose_after = 1 + len(restarts), index + 2
-                    by_scene, priors = True, True
+                    keep, choice = 1 + len(restarts), _Choice(index + 2, tried=tried)
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)

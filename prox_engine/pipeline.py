@@ -172,14 +172,15 @@ def _unless_floating(fitter: Fitter, frame: Frame, results: list[FitResult]
     stage lets a frame drift along the camera rays from its neighbour's depth, and the
     contact stage alone cannot pull it back (seed 35's bed, 22 cm up, 576 mm off)."""
     t0 = time.perf_counter()
-    gap = quality.underside_gap(results[0].vertices, fitter.scene)
+    gap = results[0].underside_gap = quality.underside_gap(results[0].vertices, fitter.scene)
     check = time.perf_counter() - t0
     if gap <= quality.FLOATING:
         _charge(results[0], "floating_check", check, 0)
         return results
     fresh = fitter.fit([frame])
     t0 = time.perf_counter()
-    fresh_gap = quality.underside_gap(fresh[0].vertices, fitter.scene)
+    fresh_gap = fresh[0].underside_gap = quality.underside_gap(fresh[0].vertices,
+                                                               fitter.scene)
     check += time.perf_counter() - t0
     kept, dropped = (fresh, results) if fresh_gap < gap else (results, fresh)
     kept[0].events.append(f"sequence: its neighbour's fit floated {_cm(gap)} over any surface, "
@@ -292,7 +293,8 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
              "events": result.events,
              "sides_swapped": result.swapped,
              "flags": quality.frame_flags(scene_stats, result.vertices, joints,
-                                          frame.keypoints.confidence, scene)}
+                                          frame.keypoints.confidence, scene,
+                                          result.underside_gap)}
     params = body.export(result.params, 0)
     params["camera"] = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                         "k": camera.k, "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],

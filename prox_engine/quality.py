@@ -50,16 +50,18 @@ def underside_gap(vertices: torch.Tensor, scene: Scene) -> float:
 
 
 def frame_flags(stats: dict, vertices: torch.Tensor, joints: torch.Tensor,
-                confidence: np.ndarray, scene: Scene) -> list[dict]:
+                confidence: np.ndarray, scene: Scene, gap: float | None = None
+                ) -> list[dict]:
     """Flags of one fitted frame: ``stats`` as :func:`metrics.scene_stats` wrote them,
     the fitted ``vertices`` (V, 3) and body ``joints`` (25, 3) in camera coordinates,
-    ``confidence`` the detector's (118,)."""
+    ``confidence`` the detector's (118,), and the :func:`underside_gap` if already
+    measured."""
     flags = []
     hidden, seen = hidden_joints(joints, confidence, scene)
     if seen and hidden >= HIDDEN_SHARE * seen:
         flags.append(_flag("hidden", f"{hidden} of the {seen} joints the detector saw are "
                                      "behind the scan from the camera"))
-    gap = underside_gap(vertices, scene)
+    gap = underside_gap(vertices, scene) if gap is None else gap
     if gap > FLOATING:
         flags.append(_flag("floating", "nothing under the body: its underside is "
                            + (f"{gap * 100:.0f} cm" if math.isfinite(gap) else
