@@ -26,7 +26,7 @@ from .generate import KINDS, make_benchmark
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
            "prox-no-support", "prox-no-visibility", "prox-toes-counted", "prox-one-start",
-           "prox-start-by-data", "prox-start-priors", "prox-same-thighs",
+           "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-facing", "prox-no-upright",
            "prox-scene-translates", "prox-given-registration", "prox-every-vertex",
            "prox-shape-early", "prox-cushion", "prox", "prox-soft", "prox" + SEQUENCE,

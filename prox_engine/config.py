@@ -81,6 +81,10 @@ class FitConfig:
     # measure how far a posture is from standing straight: a kneeling start paid for that
     # about ten times what a seated one did for the same keypoints and scene.
     start_choice_priors: bool = True
+    # Off, the starts are compared without the arms' keypoints (elbows, wrists, hands):
+    # starts differ in their trunk and legs, and an arm one start left in a wrong minimum
+    # (a reach seen from the front) is for the arm restarts, after the choice, to settle.
+    start_choice_arms: bool = True
     # Where the detector sees the nose and eyes, a start turned away from the camera costs
     # up to this (px^2): the turned-away body with its sides swapped explains the same
     # keypoints, and without the face nothing tells the two apart.

@@ -16,8 +16,8 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, turned_onto_ray, vertex_normals
-from .keypoints import (ANKLES, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS,
-                        Keypoints, ankle_seen, side_swap)
+from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
+                        SHINS, Keypoints, ankle_seen, side_swap)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
@@ -67,12 +67,13 @@ class FitResult:
 class _Choice:
     """When each frame keeps one of its candidate rows (after the stage numbered
     ``after``, counting from 1) and by what (:meth:`Fitter._best_rows`): the objective,
-    with the posture priors if ``priors``, plus the scene's cost if ``by_scene``, among
-    the rows ``tried`` ((rows,) bool; None: all)."""
+    with the posture priors if ``priors`` and the arms' keypoints if ``arms``, plus the
+    scene's cost if ``by_scene``, among the rows ``tried`` ((rows,) bool; None: all)."""
 
     after: int
     by_scene: bool = True
     priors: bool = True
+    arms: bool = True
     tried: torch.Tensor | None = None
 
 
@@ -218,7 +219,8 @@ class Fitter:
         # takes part for starts and legs, the posture priors for restarts (for starts as
         # configured).
         keep = len(labels) // len(frames)
-        choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors)
+        choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
+                         arms=self.config.start_choice_arms)
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
                      seen.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
@@ -256,8 +258,7 @@ class Fitter:
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choice.after:
-                best = self._best_rows(rows.params, rows.seen, final, keep, choice.by_scene,
-                                       choice.tried, choice.priors)
+                best = self._choose(choice, stage, rows, final, keep, previous_keypoints)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
             if (warm_start is None and self.config.arm_restarts
                     and index + 1 == self.config.start_stages < len(stages)):
@@ -292,6 +293,21 @@ class Fitter:
             stage_evaluations={k: v / len(frames) for k, v in stage_evaluations.items()},
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
+
+    def _choose(self, choice: _Choice, stage: Stage, rows: _Rows,
+                terms: dict[str, torch.Tensor], keep: int, previous: torch.Tensor | None
+                ) -> list[int]:
+        """The row each frame keeps (``keep`` candidates per frame, fitted by ``stage`` to
+        ``terms``) as ``choice`` says."""
+        if not choice.arms:
+            conf = rows.conf.clone()
+            conf[:, ARMS] = 0
+            with torch.no_grad():
+                out = self.body(rows.params, vertices=self._mesh_read(stage))
+                terms = self._terms(stage, out, rows.params, rows.target, conf, rows.depth,
+                                    previous)
+        return self._best_rows(rows.params, rows.seen, terms, keep, choice.by_scene,
+                               choice.tried, choice.priors)
 
     def _best_rows(self, params: Params, seen: torch.Tensor, terms: dict[str, torch.Tensor],
                    keep: int, by_scene: bool, tried: torch.Tensor | None = None,
