@@ -66,7 +66,7 @@ class FitResult:
 @dataclass
 class _Choice:
     """When each frame keeps one of its candidate rows (after the stage numbered
-    ``after``, counting from 1) and by what (:meth:`Fitter._best_rows`): the objective,
+    ``after``, counting from 1) and by what (:meth:`Fitter._choose`): the objective,
     with the posture priors if ``priors`` and the arms' keypoints if ``arms``, plus the
     scene's cost if ``by_scene``, among the rows ``tried`` ((rows,) bool; None: all)."""
 
