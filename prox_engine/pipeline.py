@@ -2,7 +2,6 @@
 batches), write results atomically, and summarise. Used by the CLI and the workers."""
 from __future__ import annotations
 
-import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -183,17 +182,13 @@ def _unless_floating(fitter: Fitter, frame: Frame, results: list[FitResult]
                                                                fitter.scene)
     check += time.perf_counter() - t0
     kept, dropped = (fresh, results) if fresh_gap < gap else (results, fresh)
-    kept[0].events.append(f"sequence: its neighbour's fit floated {_cm(gap)} over any surface, "
-                          f"a fit from scratch {_cm(fresh_gap)}; kept the "
+    kept[0].events.append(f"sequence: its neighbour's fit floated {quality.gap_text(gap)} "
+                          f"over any surface, a fit from scratch "
+                          f"{quality.gap_text(fresh_gap)}; kept the "
                           + ("fit from scratch" if kept is fresh else "neighbour's"))
     _discard(kept[0], dropped[0])
     _charge(kept[0], "floating_check", check, 0)
     return kept
-
-
-def _cm(metres: float) -> str:
-    return (f"{metres * 100:.0f} cm" if math.isfinite(metres)
-            else f"over {quality.REACH * 100:.0f} cm")
 
 
 def _discard(kept: FitResult, dropped: FitResult) -> None:

@@ -49,6 +49,11 @@ def underside_gap(vertices: torch.Tensor, scene: Scene) -> float:
     return scene.nearest_hit(under, -scene.up_in_camera().expand_as(under), REACH)
 
 
+def gap_text(gap: float) -> str:
+    """An :func:`underside_gap` in words: '12 cm', or 'more than 50 cm' beyond REACH."""
+    return f"{gap * 100:.0f} cm" if math.isfinite(gap) else f"more than {REACH * 100:.0f} cm"
+
+
 def frame_flags(stats: dict, vertices: torch.Tensor, joints: torch.Tensor,
                 confidence: np.ndarray, scene: Scene, gap: float | None = None
                 ) -> list[dict]:
@@ -63,9 +68,8 @@ def frame_flags(stats: dict, vertices: torch.Tensor, joints: torch.Tensor,
                                      "behind the scan from the camera"))
     gap = underside_gap(vertices, scene) if gap is None else gap
     if gap > FLOATING:
-        flags.append(_flag("floating", "nothing under the body: its underside is "
-                           + (f"{gap * 100:.0f} cm" if math.isfinite(gap) else
-                              f"more than {REACH * 100:.0f} cm") + " above any surface"))
+        flags.append(_flag("floating", f"nothing under the body: its underside is "
+                                       f"{gap_text(gap)} above any surface"))
     if stats["max_depth_m"] > SUNK:
         flags.append(_flag("sunk", f"part of the body is {stats['max_depth_m'] * 100:.0f} cm "
                                    "inside the scan"))
