@@ -104,6 +104,9 @@ class FitConfig:
     # the next stage; each frame keeps the lowest objective plus start_scene_weight times
     # the scale search's cost: the keypoints cannot tell the two apart, the scene can.
     leg_restarts: bool = False
+    # ... and where the knee is not clearly seen, the whole leg turned about the hip onto
+    # the ankle's other point at its distance from the hip, each leg and both together.
+    hip_restarts: bool = False
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

@@ -17,7 +17,7 @@ from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, turned_onto_ray, vertex_normals
 from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
-                        SHINS, Keypoints, ankle_seen, side_swap)
+                        HIPS, SHINS, Keypoints, ankle_seen, side_swap)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
@@ -329,24 +329,41 @@ class Fitter:
         return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
 
     def _leg_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
-        """Per lower leg, a copy of ``rows.params`` with that shin and its foot turned
-        about the knee until the ankle lies on the other point of its camera ray at the
-        shin's length (a shin seen from in front projects alike tucked back with the foot
-        in the air, or down to the floor), the rest of the body held, and which rows are
-        restarts worth trying ((rows,) bool): those whose ankle the detector clearly saw,
-        moves by at least MIRROR_MIN and could be posed there within MIRROR_REACH (a
-        straight leg would bend forward); none for a leg without such a row."""
+        """Copies of ``rows.params`` with a leg turned until its ankle lies on the other
+        point of its camera ray at the same distance from the pivot, the rest of the body
+        held: per leg, the shin and foot about the knee (a shin seen from in front projects
+        alike tucked back with the foot in the air, or down to the floor) and, with
+        ``hip_restarts`` where the knee is not clearly seen, the whole leg about the hip,
+        then both legs so (a seated person's thighs hidden under a table point toward the
+        camera or hang down alike). With each, which rows are restarts worth trying
+        ((rows,) bool): those whose ankle the detector clearly saw, moves by at least
+        MIRROR_MIN and could be posed there within MIRROR_REACH (a straight leg would bend
+        forward); none for a turn without such a row."""
         body = self.body
         with torch.no_grad():
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
         goals, useful = [], []
-        for knee, chain in SHINS:
-            turned = turned_onto_ray(kp[:, knee], kp[:, chain])
+
+        def turn(pivot: int, chain: list[int], worth: torch.Tensor) -> None:
+            turned = turned_onto_ray(kp[:, pivot], kp[:, chain])
             moves = (turned[:, 0] - kp[:, chain[0]]).norm(dim=-1) >= MIRROR_MIN
-            useful.append((rows.conf[:, chain[0]] > SEEN) & moves)
+            useful.append(worth & moves)
             goal = kp.clone()
             goal[:, chain] = torch.where(useful[-1][:, None, None], turned, kp[:, chain])
             goals.append(goal)
+
+        both, both_useful = kp.clone(), torch.ones(len(kp), dtype=torch.bool)
+        for hip, (knee, foot) in zip(HIPS, SHINS):
+            seen = rows.conf[:, foot[0]] > SEEN
+            turn(knee, foot, seen)
+            if self.config.hip_restarts:
+                leg = [foot[0], knee, *foot[1:]]
+                turn(hip, leg, seen & (rows.conf[:, knee] <= SEEN))
+                both[:, leg] = goals[-1][:, leg]
+                both_useful &= useful[-1]
+        if self.config.hip_restarts:
+            goals.append(both)
+            useful.append(both_useful)
         legs = [i for i, u in enumerate(useful) if u.any()]
         if not legs:
             return []

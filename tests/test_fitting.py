@@ -573,6 +573,52 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
     assert len(fitter._leg_restarts(rows)) == 1
 
 
+def test_leg_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
+    """A seated body under a tilted, rolled, off-centre camera whose knees the detector
+    did not see (under a table) but whose ankles it did: besides the shins, each leg is
+    turned whole about its hip, and both legs together, until the ankle lies on the other
+    point of its camera ray at its distance from the hip. The ankle projects where it did
+    but moves in depth, the knee moves with it, and the trunk and the other leg stay put.
+    With the knees seen, no leg is turned about the hip."""
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import HIPS, SHINS
+
+    cam2world = tilted_camera()
+    params = _posed_params(body, cam2world, "sitting")
+    with torch.no_grad():
+        before = body(params, vertices=False).keypoints[0, :25]
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, [knee for knee, _ in SHINS]] = 0.0
+    rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25] > 0.5, [None], [()])
+    fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
+    restarts = fitter._leg_restarts(rows)
+    assert len(restarts) == 5  # per leg the shin and the whole leg, then both legs
+
+    def after(variant: dict) -> torch.Tensor:
+        with torch.no_grad():
+            return body(variant, vertices=False).keypoints[0, :25]
+
+    trunk = [0, 1, 2, 5, 8]
+    for side, (hip, (knee, foot)) in enumerate(zip(HIPS, SHINS)):
+        turned = after(restarts[2 * side + 1][0])
+        ankle, was = turned[foot[0]], before[foot[0]]
+        assert float((CAMERA.project(ankle) - CAMERA.project(was)).norm()) < 5.0
+        depth = 2 * float(was / was.norm() @ before[hip]) - float(was.norm())
+        assert abs(depth - float(was.norm())) > 0.1
+        assert abs(float(ankle.norm()) - depth) < 0.03
+        assert float((turned[knee] - before[knee]).norm()) > 0.05
+        other_knee, other_foot = SHINS[1 - side]
+        held = [*trunk, other_knee, *other_foot]
+        assert float((turned[held] - before[held]).norm(dim=1).max()) < 0.02
+    both = after(restarts[4][0])
+    for _, (knee, foot) in zip(HIPS, SHINS):
+        assert float((both[foot[0]] - before[foot[0]]).norm()) > 0.1
+    assert float((both[trunk] - before[trunk]).norm(dim=1).max()) < 0.02
+
+    rows.conf[:, [knee for knee, _ in SHINS]] = 0.9
+    assert len(fitter._leg_restarts(rows)) == 2
+
+
 def test_only_the_restarts_tried_compete_for_a_frame(body):
     """Frames fitted together share their rows' layout, so a frame none of whose legs is
     worth restarting carries copies of its body: those never win, even on a lower
