@@ -344,7 +344,7 @@ class Fitter:
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
         goals, useful = [], []
 
-        def turn(pivot: int, chain: list[int], worth: torch.Tensor) -> None:
+        def add_turn(pivot: int, chain: list[int], worth: torch.Tensor) -> None:
             turned = turned_onto_ray(kp[:, pivot], kp[:, chain])
             moves = (turned[:, 0] - kp[:, chain[0]]).norm(dim=-1) >= MIRROR_MIN
             useful.append(worth & moves)
@@ -355,21 +355,21 @@ class Fitter:
         both, both_useful = kp.clone(), torch.ones(len(kp), dtype=torch.bool)
         for hip, (knee, foot) in zip(HIPS, SHINS):
             seen = rows.conf[:, foot[0]] > SEEN
-            turn(knee, foot, seen)
+            add_turn(knee, foot, seen)
             if self.config.hip_restarts:
                 leg = [foot[0], knee, *foot[1:]]
-                turn(hip, leg, seen & (rows.conf[:, knee] <= SEEN))
+                add_turn(hip, leg, seen & (rows.conf[:, knee] <= SEEN))
                 both[:, leg] = goals[-1][:, leg]
                 both_useful &= useful[-1]
         if self.config.hip_restarts:
             goals.append(both)
             useful.append(both_useful)
-        legs = [i for i, u in enumerate(useful) if u.any()]
-        if not legs:
+        turns = [i for i, u in enumerate(useful) if u.any()]
+        if not turns:
             return []
-        count = len(kp)  # every leg's restarts posed at once, one row group each
-        params = {k: v.repeat(len(legs), *[1] * (v.dim() - 1)) for k, v in rows.params.items()}
-        goal = torch.cat([goals[i] for i in legs])
+        count = len(kp)  # every turn's restarts posed at once, one row group each
+        params = {k: v.repeat(len(turns), *[1] * (v.dim() - 1)) for k, v in rows.params.items()}
+        goal = torch.cat([goals[i] for i in turns])
 
         def objective() -> Callable[[slice], torch.Tensor]:
             keypoints = body(params, vertices=False).keypoints[:, BODY]
@@ -382,12 +382,12 @@ class Fitter:
         with torch.no_grad():
             missed = (body(params, vertices=False).keypoints[:, BODY] - goal).norm(dim=-1)
         restarts = []
-        for n, leg in enumerate(legs):
-            rows_of_leg = slice(n * count, (n + 1) * count)
-            tried = useful[leg] & (missed[rows_of_leg].max(1).values < MIRROR_REACH)
+        for n, index in enumerate(turns):
+            rows_of_turn = slice(n * count, (n + 1) * count)
+            tried = useful[index] & (missed[rows_of_turn].max(1).values < MIRROR_REACH)
             if bool(tried.any()):
-                restarts.append(({k: v[rows_of_leg].detach().clone() for k, v in params.items()},
-                                 tried))
+                restarts.append(({k: v[rows_of_turn].detach().clone()
+                                  for k, v in params.items()}, tried))
         return restarts
 
     def _announce(self, stage: str) -> None:
