@@ -258,7 +258,7 @@ class Fitter:
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choice.after:
-                best = self._choose(choice, stage, rows, final, keep, previous_keypoints)
+                best = self._choose(choice, stage, rows, final, keep)
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
             if (warm_start is None and self.config.arm_restarts
                     and index + 1 == self.config.start_stages < len(stages)):
@@ -295,17 +295,15 @@ class Fitter:
             for i, f in enumerate(frames)]
 
     def _choose(self, choice: _Choice, stage: Stage, rows: _Rows,
-                terms: dict[str, torch.Tensor], keep: int, previous: torch.Tensor | None
-                ) -> list[int]:
+                terms: dict[str, torch.Tensor], keep: int) -> list[int]:
         """The row each frame keeps (``keep`` candidates per frame, fitted by ``stage`` to
-        ``terms``) as ``choice`` says."""
+        ``terms``) as ``choice`` says; without the arms, only the data term changes."""
         if not choice.arms:
             conf = rows.conf.clone()
             conf[:, ARMS] = 0
             with torch.no_grad():
-                out = self.body(rows.params, vertices=self._mesh_read(stage))
-                terms = self._terms(stage, out, rows.params, rows.target, conf, rows.depth,
-                                    previous)
+                out = self.body(rows.params, vertices=False)
+                terms = {**terms, "data": self._data_term(stage, out, rows.target, conf)}
         return self._best_rows(rows.params, rows.seen, terms, keep, choice.by_scene,
                                choice.tried, choice.priors)
 
@@ -401,19 +399,26 @@ class Fitter:
         data = torch.tensor(np.stack([f.keypoints.data for f in frames]), dtype=torch.float32)
         return data[..., :2], data[..., 2] * self.body.keypoint_mask
 
+    def _data_term(self, stage: Stage, out: BodyOutput, target: torch.Tensor,
+                   conf: torch.Tensor) -> torch.Tensor:
+        """The stage's weighted robust reprojection error (B,) of the keypoints ``target``
+        (B, K, 2) with confidences ``conf`` (B, K)."""
+        w = stage.weights
+        joint_weight = torch.zeros_like(conf)
+        joint_weight[:, BODY] = w.get("body", 0)
+        joint_weight[:, LEFT_HAND] = w.get("hands", 0)
+        joint_weight[:, RIGHT_HAND] = w.get("hands", 0)
+        joint_weight[:, FACE] = w.get("face", 0)
+        return losses.keypoint_data(out, self.camera, target, (joint_weight * conf) ** 2,
+                                    self.config.data_rho)
+
     def _terms(self, stage: Stage, out: BodyOutput, params: Params, target: torch.Tensor,
                conf: torch.Tensor, depth: list, previous: torch.Tensor | None
                ) -> dict[str, torch.Tensor]:
         """Weighted value (B,) of every active term of a stage."""
         w = stage.weights
         cfg, body = self.config, self.body
-        joint_weight = torch.zeros_like(conf)
-        joint_weight[:, BODY] = w.get("body", 0)
-        joint_weight[:, LEFT_HAND] = w.get("hands", 0)
-        joint_weight[:, RIGHT_HAND] = w.get("hands", 0)
-        joint_weight[:, FACE] = w.get("face", 0)
-        terms = {"data": losses.keypoint_data(out, self.camera, target,
-                                              (joint_weight * conf) ** 2, cfg.data_rho),
+        terms = {"data": self._data_term(stage, out, target, conf),
                  "joint_limits": cfg.joint_limit_weight * body.joint_limits(params)}
         priors = {"pose_prior": body.pose_prior, "shape": body.shape_prior,
                   "bending": body.bending_prior, "hand_prior": body.hand_prior}

@@ -823,7 +823,7 @@ def test_the_start_choice_leaves_out_the_arms(body):
         assert float(terms["data"][0]) > 3 * float(terms["data"][1])  # the arm costs most
         choice = _Choice(config.start_stages, priors=config.start_choice_priors,
                          arms=config.start_choice_arms)
-        return fitter._choose(choice, stage, rows, terms, 2, None)[0]
+        return fitter._choose(choice, stage, rows, terms, 2)[0]
 
     assert kept("prox") == 0
     assert kept("prox-start-arms") == 1
