@@ -15,6 +15,7 @@ import uuid
 import zipfile
 from abc import ABC, abstractmethod
 from pathlib import Path
+from stat import S_ISREG
 from typing import BinaryIO, Iterator
 
 
@@ -109,7 +110,11 @@ class LocalStorage(Storage):
 
     def size(self, key: str) -> int | None:
         path = self.path(key)
-        return path.stat().st_size if path.is_file() else None
+        try:
+            stat = path.stat()
+        except (OSError, ValueError):  # missing, or a name no file can have (too long, NUL)
+            return None
+        return stat.st_size if S_ISREG(stat.st_mode) else None
 
     def delete_prefix(self, prefix: str) -> None:
         shutil.rmtree(self.path(prefix), ignore_errors=True)

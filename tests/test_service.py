@@ -174,6 +174,9 @@ def test_full_job_upload_to_download(stack, dataset_zip, body, tmp_path):
     params = http.get(f"/v1/jobs/{job['id']}/frames/{frame}/params").json()
     assert params["frame"] == frame and params["config"] == "rgb"
     assert http.get(f"/v1/jobs/{job['id']}/frames/nope/params").status_code == 404
+    for odd in ("o\u0336" * 200, "a%00b"):  # a name too long for any file system; a NUL
+        assert http.get(f"/v1/jobs/{job['id']}/frames/{odd}/params").status_code == 404
+        assert http.get(f"/v1/jobs/{job['id']}/report/{odd}").status_code == 404
     assert http.get(f"/v1/jobs/{job['id']}/frames/{frame}/mesh",
                     params={"recording": "Other_1"}).status_code == 404
 
