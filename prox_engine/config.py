@@ -93,6 +93,10 @@ class FitConfig:
     # best whose thighs differ from the best's (bent forward or along the trunk): the
     # keypoints cannot tell sitting from standing there, the scene can.
     start_other_thighs: bool = False
+    # ... also where the ankles are seen but neither hip nor knee (keypoints.HIDDEN): a
+    # seated reacher's thighs behind a table (tuning seed 0: 215 -> 131 mm over its six
+    # frames; `prox-thighs-by-ankles` is the ablation)
+    start_thighs_hidden: bool = True
     # After the start choice, each frame's arms are also restarted held forward (one or
     # both), fitted side by side through the next stage, and the lowest objective is kept:
     # an arm seen from the front projects alike pointing forward or back.

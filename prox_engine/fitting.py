@@ -17,7 +17,7 @@ from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, turned_onto_ray, vertex_normals
 from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
-                        HIPS, SHINS, Keypoints, ankle_seen, side_swap)
+                        HIPS, SHINS, Keypoints, ankle_seen, side_swap, thighs_hidden)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
@@ -567,14 +567,19 @@ class Fitter:
         detector's confidences (neck and hips included, unlike the data term); and per
         frame the parts whose left and right the detector most likely exchanged (with
         ``config.swap_sides``)."""
+        cfg = self.config
         target, conf = self._targets(frames)
-        labellings = LABELLINGS if self.config.swap_sides else LABELLINGS[:1]
+        labellings = LABELLINGS if cfg.swap_sides else LABELLINGS[:1]
+        guessed_legs = None  # where the keypoints cannot tell sitting from standing
+        if cfg.start_other_thighs:
+            guessed_legs = ~ankle_seen(conf)
+            if cfg.start_thighs_hidden:
+                guessed_legs |= thighs_hidden(conf)
         params, chosen = best_start(self.body, self.camera, target, conf, self.up,
-                                    self.config.data_rho, self.config.init_depth_weight,
+                                    cfg.data_rho, cfg.init_depth_weight,
                                     [side_swap(label) for label in labellings],
-                                    events=self.events, keep=self.config.start_candidates,
-                                    facing_cost=self.config.facing_cost,
-                                    other_thighs=self.config.start_other_thighs)
+                                    events=self.events, keep=cfg.start_candidates,
+                                    facing_cost=cfg.facing_cost, guessed_legs=guessed_legs)
         return params, [labellings[int(c)] for c in chosen]
 
     def _closest_labelling(self, target: torch.Tensor, conf: torch.Tensor,

@@ -23,7 +23,7 @@ from . import lbfgs
 from .body.base import BodyModel, Params
 from .camera import Camera
 from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
-from .keypoints import BODY, TORSO_EDGES, ankle_seen
+from .keypoints import BODY, TORSO_EDGES
 from .losses import gmof
 
 TORSO = [1, 2, 5, 8, 9, 12]  # neck, shoulders, mid-hip, hips: nearly rigid in any posture
@@ -93,16 +93,16 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
                up: torch.Tensor, rho: float, depth_weight: float,
                labellings: Sequence[list[int]] = (), max_iter: int = 30,
                events: list[str] | None = None, keep: int = 1, facing_cost: float = 0.0,
-               other_thighs: bool = False) -> tuple[Params, torch.Tensor]:
+               guessed_legs: torch.Tensor | None = None) -> tuple[Params, torch.Tensor]:
     """Parameters of the ``keep`` best distinct rigidly fitted candidates of each frame
     (B * keep rows, frame-major, best first; see :func:`_distinct`), and which of
     ``labellings`` (row orders of the keypoints, e.g. with the legs' sides exchanged; none:
     the keypoints as given) each explains the keypoints under, (B * keep,). ``target``
     (B, K, 2) pixels and ``conf`` (B, K) the detector's confidences. Where the detector
     sees the face, a start turned away from the camera costs up to ``facing_cost`` (as
-    many px^2 of reprojection error). With ``other_thighs``, in a frame where the
-    detector sees no ankle, the second start is the best whose thighs differ from the
-    best's (see :func:`_distinct`)."""
+    many px^2 of reprojection error). In the frames ``guessed_legs`` ((B,) bool: whose
+    keypoints cannot tell sitting from standing) the second start is the best whose
+    thighs differ from the best's (see :func:`_distinct`)."""
     orders = list(labellings) or [list(range(target.shape[1]))]
     frames, views = target.shape[0], len(orders)
     # Every frame under every labelling: (B, L) flattened to B * L "frames" below.
@@ -183,7 +183,7 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         chosen, starts = [], []
         for b in range(frames):
             rows = rotation.view(frames, -1, 3, 3)[b]
-            legs_guessed = other_thighs and not bool(ankle_seen(conf[b * views]))
+            legs_guessed = guessed_legs is not None and bool(guessed_legs[b])
             for pick in _distinct(score[b], rows, cands.postures, keep,
                                   seated if legs_guessed else None):
                 n = b * views * count + pick  # row of (frame, labelling, candidate)

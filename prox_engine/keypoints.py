@@ -45,9 +45,14 @@ ANKLES = [11, 14]  # right, left: a frame cut off at the knees has neither
 # Per leg (right, left), the knee and what hangs from it: ankle, big toe, small toe, heel.
 SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
 HIPS = [9, 12]  # right, left: where each leg of SHINS hangs from
+KNEES = [knee for knee, _ in SHINS]
 # The arms' keypoints (118 layout): elbows, wrists (right, left) and both hands.
 ARMS = [3, 4, 6, 7, *range(LEFT_HAND.start, RIGHT_HAND.stop)]
 SEEN = 0.5  # detector confidence of a joint it clearly saw
+# ... and below which a joint is a guess, hidden behind something: a blurred or
+# self-occluded joint the detector sees is reported at 0.3-0.5, a joint behind furniture
+# lower (or not at all)
+HIDDEN = 0.3
 MAX_PIXEL = 1e6  # no image is this large; squares of larger values overflow float32
 
 
@@ -163,3 +168,10 @@ def ankle_seen(conf: torch.Tensor) -> torch.Tensor:
     tensor or an array): a frame cut off at the knees has neither, and its legs' posture
     is a guess."""
     return (conf[..., ANKLES] > 0).any(-1)
+
+
+def thighs_hidden(conf: torch.Tensor) -> torch.Tensor:
+    """(...,) whether the detector reports neither hip nor knee above HIDDEN, from
+    confidences (..., K): the thighs are behind something (a seated person's, behind a
+    table, the feet seen under it), and where they point is a guess."""
+    return ~(conf[..., [*HIPS, *KNEES]] > HIDDEN).any(-1)

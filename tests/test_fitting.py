@@ -285,16 +285,20 @@ def test_several_starts_per_frame_are_distinct_best_first(body):
 
 
 def test_with_the_legs_unseen_the_second_start_has_the_other_thighs(body):
-    """A standing person cut off above the knees: the keypoints cannot tell standing from
-    sitting, so the two starts kept are the best (standing) and the best seated one, for
-    the scene to choose between; seen whole, the second start is another standing one."""
+    """A standing person cut off above the knees, or with hips and knees hidden and the
+    feet seen: the keypoints cannot tell standing from sitting, so the two starts kept
+    are the best (standing) and the best seated one, for the scene to choose between;
+    seen whole, the second start is another standing one."""
     from prox_engine.initialisation import _thighs_forward
 
     cam2world = tilted_camera()
     scene = floor_scene(cam2world)
     keypoints = standing_person(body, cam2world, 0.0)[1]
-    whole, cut = frame_of(keypoints), frame_of(keypoints)
+    whole, cut, behind = frame_of(keypoints), frame_of(keypoints), frame_of(keypoints)
     cut.keypoints.data[[10, 11, 13, 14, 19, 20, 21, 22, 23, 24], 2] = 0.0  # knees, feet
+    behind.keypoints.data[[9, 10, 12, 13], 2] = [0.3, 0.2, 0.0, 0.1]  # hips, knees hidden
+    blurred = frame_of(keypoints)
+    blurred.keypoints.data[[9, 10, 12, 13], 2] = [0.45, 0.35, 0.4, 0.32]
     config = load_config("prox")
 
     def seated(frame: Frame, other_thighs: bool) -> list[bool]:
@@ -305,6 +309,8 @@ def test_with_the_legs_unseen_the_second_start_has_the_other_thighs(body):
         return [_thighs_forward(k) for k in posed]
 
     assert seated(cut, True) == [False, True]
+    assert seated(behind, True) == [False, True]  # the feet seen, the thighs not
+    assert seated(blurred, True) == [False, False]  # the thighs seen, faintly
     assert seated(cut, False) == [False, False]
     assert seated(whole, True) == [False, False]
 
