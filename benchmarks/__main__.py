@@ -27,7 +27,7 @@ SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
            "prox-no-support", "prox-no-visibility", "prox-toes-counted", "prox-one-start",
            "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",
-           "prox-thighs-by-ankles",
+           "prox-thighs-by-ankles", "prox-start-feet",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-hip-restarts",
            "prox-no-facing", "prox-no-upright", "prox-scene-translates",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",

@@ -16,8 +16,8 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, turned_onto_ray, vertex_normals
-from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN,
-                        HIPS, SHINS, Keypoints, ankle_seen, side_swap, thighs_hidden)
+from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, FEET, RIGHT_HAND,
+                        SEEN, HIPS, SHINS, Keypoints, ankle_seen, side_swap, thighs_hidden)
 from .initialisation import best_start
 from .scale_search import best_scale, carrying_vertices, toe_vertices
 from .scene import Scene
@@ -67,14 +67,16 @@ class FitResult:
 class _Choice:
     """When each frame keeps one of its candidate rows (after the stage numbered
     ``after``, counting from 1) and by what (:meth:`Fitter._choose`): the objective,
-    with the posture priors if ``priors`` and the arms' keypoints if ``arms``, plus the
-    scene's cost if ``by_scene``, among the rows ``tried`` ((rows,) bool; None: all)."""
+    with the posture priors if ``priors``, the arms' keypoints if ``arms`` and the feet's
+    but in the frames ``feet_left_out`` ((frames,) bool; None: none), plus the scene's
+    cost if ``by_scene``, among the rows ``tried`` ((rows,) bool; None: all)."""
 
     after: int
     by_scene: bool = True
     priors: bool = True
     arms: bool = True
     tried: torch.Tensor | None = None
+    feet_left_out: torch.Tensor | None = None
 
 
 @dataclass
@@ -198,6 +200,8 @@ class Fitter:
         stage_evaluations: dict[str, int] = {}
         target, conf = self._targets(frames)
         seen = conf[:, BODY] > SEEN  # the detector's, neck and hips included
+        feet_left_out = (thighs_hidden(conf) if warm_start is None
+                         and not self.config.start_choice_feet else None)
         conf[:, self.config.ignore_keypoints] = 0
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}
@@ -220,7 +224,7 @@ class Fitter:
         # configured).
         keep = len(labels) // len(frames)
         choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
-                         arms=self.config.start_choice_arms)
+                         arms=self.config.start_choice_arms, feet_left_out=feet_left_out)
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
                      seen.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
@@ -297,10 +301,15 @@ class Fitter:
     def _choose(self, choice: _Choice, stage: Stage, rows: _Rows,
                 terms: dict[str, torch.Tensor], keep: int) -> list[int]:
         """The row each frame keeps (``keep`` candidates per frame, fitted by ``stage`` to
-        ``terms``) as ``choice`` says; without the arms, only the data term changes."""
-        if not choice.arms:
+        ``terms``) as ``choice`` says; without the arms or feet, only the data term
+        changes."""
+        if not choice.arms or choice.feet_left_out is not None:
             conf = rows.conf.clone()
-            conf[:, ARMS] = 0
+            if not choice.arms:
+                conf[:, ARMS] = 0
+            if choice.feet_left_out is not None:
+                left_out = choice.feet_left_out.repeat_interleave(keep).nonzero().flatten()
+                conf[left_out[:, None], FEET] = 0
             with torch.no_grad():
                 out = self.body(rows.params, vertices=False)
                 terms = {**terms, "data": self._data_term(stage, out, rows.target, conf)}
@@ -570,17 +579,23 @@ class Fitter:
         cfg = self.config
         target, conf = self._targets(frames)
         labellings = LABELLINGS if cfg.swap_sides else LABELLINGS[:1]
-        guessed_legs = None  # where the keypoints cannot tell sitting from standing
-        if cfg.start_other_thighs:
-            guessed_legs = ~ankle_seen(conf)
-            if cfg.start_thighs_hidden:
-                guessed_legs |= thighs_hidden(conf)
         params, chosen = best_start(self.body, self.camera, target, conf, self.up,
                                     cfg.data_rho, cfg.init_depth_weight,
                                     [side_swap(label) for label in labellings],
                                     events=self.events, keep=cfg.start_candidates,
-                                    facing_cost=cfg.facing_cost, guessed_legs=guessed_legs)
+                                    facing_cost=cfg.facing_cost,
+                                    guessed_legs=self._guessed_legs(conf))
         return params, [labellings[int(c)] for c in chosen]
+
+    def _guessed_legs(self, conf: torch.Tensor) -> torch.Tensor | None:
+        """(B,) bool: the frames whose keypoints (the detector's confidences ``conf``
+        (B, K)) cannot tell sitting from standing, whose second start has the other
+        thighs (``config.start_other_thighs``): no ankle seen, or (with
+        ``start_thighs_hidden``) neither hip nor knee; None without."""
+        if not self.config.start_other_thighs:
+            return None
+        guessed = ~ankle_seen(conf)
+        return guessed | thighs_hidden(conf) if self.config.start_thighs_hidden else guessed
 
     def _closest_labelling(self, target: torch.Tensor, conf: torch.Tensor,
                            previous: torch.Tensor | None) -> list[tuple[str, ...]]:

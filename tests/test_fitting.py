@@ -833,3 +833,33 @@ def test_the_start_choice_leaves_out_the_arms(body):
 
     assert kept("prox") == 0
     assert kept("prox-start-arms") == 1
+
+
+def test_where_the_thighs_are_hidden_the_start_choice_leaves_the_feet_out(body):
+    """Two candidate rows of a frame pose the same body: the first is matched to feet
+    (ankles, toes, heels) 150 px off, the second to a nose 60 px off. Counting the feet,
+    the second is kept; left out (in a frame whose thighs are hidden), the first, whose
+    other keypoints fit better, is kept."""
+    from prox_engine.fitting import _Choice, _Rows
+    from prox_engine.keypoints import FEET
+
+    cam2world = tilted_camera()
+    frame = frame_of(standing_person(body, cam2world)[1])
+    fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
+    starts, _ = fitter.initialise([frame])
+    params = {k: v[:1].repeat(2, *[1] * (v.dim() - 1)) for k, v in starts.items()}
+    target, conf = (t.repeat(2, *[1] * (t.dim() - 1)) for t in fitter._targets([frame]))
+    target[0, FEET] += 150.0
+    target[1, 0] += 60.0
+    rows = _Rows(params, target, conf, conf[:, :25] > 0.5, [None, None], [(), ()])
+    stage = fitter.config.stages[1]
+    with torch.no_grad():
+        terms = {"data": fitter._data_term(stage, body(params, vertices=False), target, conf)}
+
+    def kept(feet_left_out: torch.Tensor | None) -> list[int]:
+        choice = _Choice(2, by_scene=False, feet_left_out=feet_left_out)
+        return fitter._choose(choice, stage, rows, terms, keep=2)
+
+    assert kept(None) == [1]
+    assert kept(torch.tensor([False])) == [1]
+    assert kept(torch.tensor([True])) == [0]
