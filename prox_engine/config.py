@@ -85,13 +85,14 @@ class FitConfig:
     # starts differ in their trunk and legs, and an arm one start left in a wrong minimum
     # (a reach seen from the front) is for the arm restarts, after the choice, to settle.
     start_choice_arms: bool = True
-    # Off, in the frames whose thighs are hidden (keypoints.thighs_hidden), the starts are
-    # compared without the feet's keypoints (ankles, toes, heels) too: one start is seated
-    # and the other standing (start_thighs_hidden), the keypoint stages' pose prior pulls
-    # both toward standing, and only the scene can tell (seed 35's seated reacher, whose
-    # seated start met the seen feet 100 px^2 worse after two stages, went on standing,
-    # shrunk 19 %: 213 and 251 mm). Where no ankle is seen the feet's faint guesses stay:
-    # they told a crouching kneeler from a standing one.
+    # Off, in the frames given a seated second start because their thighs are hidden
+    # (start_thighs_hidden, keypoints.thighs_hidden), the starts are compared without the
+    # feet's keypoints (ankles, toes, heels) too: one start is seated and the other
+    # standing, the keypoint stages' pose prior pulls both toward standing, and only the
+    # scene can tell (seed 35's seated reacher, whose seated start met the seen feet 100
+    # px^2 worse after two stages, went on standing, shrunk 19 %: 213 and 251 mm). Where
+    # only the ankles are unseen the feet's faint guesses stay: they told a crouching
+    # kneeler from a standing one.
     start_choice_feet: bool = True
     # Where the detector sees the nose and eyes, a start turned away from the camera costs
     # up to this (px^2): the turned-away body with its sides swapped explains the same

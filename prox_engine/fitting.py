@@ -200,8 +200,9 @@ class Fitter:
         stage_evaluations: dict[str, int] = {}
         target, conf = self._targets(frames)
         seen = conf[:, BODY] > SEEN  # the detector's, neck and hips included
-        feet_left_out = (thighs_hidden(conf) if warm_start is None
-                         and not self.config.start_choice_feet else None)
+        cfg = self.config
+        feet_left_out = (thighs_hidden(conf) if warm_start is None and cfg.start_other_thighs
+                         and cfg.start_thighs_hidden and not cfg.start_choice_feet else None)
         conf[:, self.config.ignore_keypoints] = 0
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}
