@@ -29,7 +29,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",
            "prox-thighs-by-ankles", "prox-start-feet",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-hip-restarts",
-           "prox-no-facing", "prox-no-upright", "prox-scene-translates",
+           "prox-no-facing", "prox-no-upright", "prox-scene-translates", "prox-no-scene-guard",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",
            "prox", "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,

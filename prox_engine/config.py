@@ -133,6 +133,11 @@ class FitConfig:
     # seeds 0, 8 and 9, PJE: 101 -> 91, 126 -> 112 and 127 -> 108 mm;
     # `prox-scene-translates` is the ablation).
     scene_stages_translate: bool = False
+    # A frame whose scene stages end with this many times the data term they started with
+    # is given back the body from before them (0: never): held where they stand, a body
+    # sunk into a seat deeper than its cushion can leave it only by bending, and the
+    # penetration term then throws the limbs the keypoints barely hold into the air.
+    scene_data_guard: float = 0.0
     # Depth (m) a body may sink into the scan before the penetration term pushes it out:
     # cushions and mattresses give 2-4 cm under a person, and a scan registered a
     # centimetre or two off puts a correctly placed body that deep. 0 (the paper's term)

@@ -30,6 +30,14 @@ MIRROR_MIN = 0.1
 MIRROR_ITERATIONS = 20
 MIRROR_REACH = 0.05
 
+# What the scene stages may add to a frame's data term (robust px^2) besides multiplying
+# it by FitConfig.scene_data_guard: bending a standing body seen exactly out of a floor
+# scanned 2 cm high costs about 900 (its joints end 4-6 cm off). Of 648 benchmark frames
+# (twelve seeds), 23 tripled their data term in the scene stages (undone, 20 gained PJE,
+# and sitters sat 4-13 % of their vertices deep in their seats) and 6 also added more
+# than this (a seated body thrown from a seat it had sunk 7 cm into: 334 -> 4163).
+SCENE_GUARD_FLOOR = 1000.0
+
 # Terms that read the posed mesh; stages without them pose keypoints and spheres only,
 # and stages with the scene terms alone pose only the vertices those read.
 SCENE_TERMS = ("penetration", "contact")
@@ -237,6 +245,7 @@ class Fitter:
         rescaled = not self.config.scale_search or (
             warm_start is not None and not self.config.sequence_scale_search)
         placed = warm_start is not None  # at the depth cloud's distance
+        before_scene: tuple[Params, dict[str, torch.Tensor]] | None = None
         for index, stage in enumerate(stages):
             self._announce(stage.name)
             if not placed and stage.weights.get("depth", 0) > 0:
@@ -253,6 +262,9 @@ class Fitter:
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
+            if (before_scene is None and self.config.scene_data_guard > 0 and final
+                    and keep == 1 and self._scene_stage(stage)):
+                before_scene = ({k: v.detach().clone() for k, v in rows.params.items()}, final)
             t0, before = time.perf_counter(), self.evaluations
             moves = self.config.scene_stages_translate or not self._scene_stage(stage)
             free = [*(["transl"] if moves else []), "global_orient", *self.body.pose_group()]
@@ -284,6 +296,9 @@ class Fitter:
                 time.perf_counter() - t0)
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
                                              + self.evaluations - before)
+        if before_scene is not None:
+            final = self._undo_broken_scene(frames, stages[-1], rows, final, *before_scene,
+                                            previous_keypoints)
         params, labels = rows.params, rows.labels
         before = self.evaluations
         with torch.no_grad():
@@ -298,6 +313,36 @@ class Fitter:
             stage_evaluations={k: v / len(frames) for k, v in stage_evaluations.items()},
             events=list(self.events), swapped=list(labels[i]))
             for i, f in enumerate(frames)]
+
+    def _undo_broken_scene(self, frames: list[Frame], stage: Stage, rows: _Rows,
+                           terms: dict[str, torch.Tensor], kept: Params,
+                           kept_terms: dict[str, torch.Tensor],
+                           previous: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """Give back, in place, the body from before the scene stages (``kept``, whose
+        terms were ``kept_terms``) to each frame whose scene stages multiplied its data
+        term by more than ``config.scene_data_guard`` and added SCENE_GUARD_FLOOR, with
+        an event naming it; returns the last ``stage``'s terms (``terms`` for the other
+        frames)."""
+        broke = (terms["data"] > self.config.scene_data_guard * kept_terms["data"]
+                 + SCENE_GUARD_FLOOR).nonzero().flatten().tolist()
+        if not broke:
+            return terms
+        for b in broke:
+            self.events.append(
+                f"{frames[b].name}: scene stages undone, they took the data term from "
+                f"{float(kept_terms['data'][b]):.0f} to {float(terms['data'][b]):.0f}")
+        undone = rows.taken(broke)
+        undone.params = {k: v[broke] for k, v in kept.items()}
+        if previous is not None and len(previous) == len(rows.labels):
+            previous = previous[broke]
+        with torch.no_grad():
+            redone = self._terms(stage, self.body(undone.params, vertices=self._mesh_read(stage)),
+                                 undone.params, undone.target, undone.conf, undone.depth,
+                                 previous)
+        index = torch.tensor(broke)
+        for name, value in undone.params.items():
+            rows.params[name] = rows.params[name].index_copy(0, index, value)
+        return {k: v.index_copy(0, index, redone[k]) for k, v in terms.items()}
 
     def _choose(self, choice: _Choice, stage: Stage, rows: _Rows,
                 terms: dict[str, torch.Tensor], keep: int) -> list[int]:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import trimesh
 from scipy.spatial.transform import Rotation
 
 from prox_engine import scene_sdf
@@ -694,6 +695,50 @@ def test_scene_stages_bend_a_body_out_of_a_misregistered_floor_where_it_stands(b
     moved_free, _, _ = fit(translate=True)
     assert moved < 0.005 and moved_free > 0.02, (moved, moved_free)
     assert sunk == 0.0 and error < 0.075, (sunk, error)
+
+
+def test_scene_stages_that_throw_a_sunk_body_off_its_keypoints_are_undone(body):
+    """A seated body fitted exactly, under a tilted camera, 12 cm deep in a seat (a
+    cushion gives a few centimetres; the keypoints' noise or size put some fits deeper):
+    held where it sits, the scene stages can leave the seat only by bending, and throw
+    the legs off their keypoints. The guard gives the frame its body from before them
+    back, and says so."""
+    cam2world = tilted_camera()
+    params = _posed_params(body, cam2world, "sitting")
+    c2w = torch.tensor(cam2world, dtype=torch.float32)
+    with torch.no_grad():
+        out = body(params)
+    truth = out.keypoints[0, :25]
+    world = out.vertices[0] @ c2w[:3, :3].T + c2w[:3, 3]
+    joints = truth @ c2w[:3, :3].T + c2w[:3, 3]
+    top = float(world[body.contact_parts["gluteus"], 2].min()) + 0.12
+    hips, knees = joints[[9, 12]].mean(0), joints[[10, 13]].mean(0)
+    forward = (knees - hips)[:2] / (knees - hips)[:2].norm()
+    length = float((knees - hips)[:2].norm()) + 0.15  # from behind the hips to the knees
+    seat = trimesh.creation.box([length, 0.6, top])
+    seat.apply_transform(trimesh.transformations.rotation_matrix(
+        math.atan2(float(forward[1]), float(forward[0])), [0, 0, 1]))
+    middle = (hips[:2] + knees[:2]) / 2 - 0.075 * forward
+    seat.apply_translation([float(middle[0]), float(middle[1]), top / 2])
+    room = trimesh.util.concatenate([plane_mesh(size=8.0), seat.subdivide_to_size(0.1)])
+    scene = Scene(room.vertices, room.faces, cam2world,
+                  compute_sdf(room.vertices, room.faces, dim=96, padding=0.5),
+                  sample_spacing=0.1)
+
+    def fit(guard: float) -> tuple[float, list[str]]:
+        """The mean joint error and the events."""
+        config = load_config("prox")
+        config.scene_data_guard = guard
+        result = Fitter(body, CAMERA, config, scene).fit([frame_of(truth)],
+                                                         warm_start=params)[0]
+        return float((result.keypoints[:25] - truth).norm(dim=1).mean()), result.events
+
+    assert load_config("prox").scene_data_guard > 0
+    thrown, events = fit(guard=0.0)
+    assert thrown > 0.05 and not events, (thrown, events)
+    kept, events = fit(guard=load_config("prox").scene_data_guard)
+    assert kept < 0.01, kept
+    assert len(events) == 1 and "f: scene stages undone" in events[0], events
 
 
 def test_rescale_scales_the_body_about_the_camera(body):
