@@ -30,6 +30,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-thighs-by-ankles", "prox-start-feet",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-hip-restarts",
            "prox-no-facing", "prox-no-upright", "prox-scene-translates", "prox-no-scene-guard",
+           "prox-no-floating-restart",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",
            "prox", "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,

@@ -120,6 +120,10 @@ class FitConfig:
     # ... and where the knee is not clearly seen, the whole leg turned about the hip onto
     # the ankle's other point at its distance from the hip, each leg and both together.
     hip_restarts: bool = False
+    # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
+    # is fitted again from its other start, which is kept if it floats less and fits the
+    # keypoints clearly better (pipeline.RESTART_DATA).
+    floating_restart: bool = False
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5
@@ -133,10 +137,13 @@ class FitConfig:
     # seeds 0, 8 and 9, PJE: 101 -> 91, 126 -> 112 and 127 -> 108 mm;
     # `prox-scene-translates` is the ablation).
     scene_stages_translate: bool = False
-    # A frame whose scene stages end with this many times the data term they started with
-    # is given back the body from before them (0: never): held where they stand, a body
-    # sunk into a seat deeper than its cushion can leave it only by bending, and the
-    # penetration term then throws the limbs the keypoints barely hold into the air.
+    # A frame fitted from scratch whose scene stages end with this many times the data
+    # term they started with (plus fitting.SCENE_GUARD_FLOOR) is given back the body from
+    # before them (0: never): held where they stand, a body sunk into a seat deeper than
+    # its cushion can leave it only by bending, and the penetration term then throws the
+    # limbs the keypoints barely hold into the air. Not in sequence mode's warm-started
+    # frames: a body left in its seat is handed on to the next frame, which then starts
+    # sunk (seeds 0, 8, 16, 35, 36, 38 and 41: 92.3 -> 93.7 mm with it there).
     scene_data_guard: float = 0.0
     # Depth (m) a body may sink into the scan before the penetration term pushes it out:
     # cushions and mattresses give 2-4 cm under a person, and a scan registered a

@@ -69,6 +69,9 @@ class FitResult:
     events: list[str] = field(default_factory=list)  # numerical trouble met on the way
     swapped: list[str] = field(default_factory=list)  # parts whose sides were relabelled
     underside_gap: float | None = None  # m (quality.underside_gap), where already measured
+    # Which of the frame's distinct starts (best first) its fit went on from; None where
+    # it had one.
+    start: int | None = None
 
 
 @dataclass
@@ -175,11 +178,13 @@ class Fitter:
 
     # ------------------------------------------------------------------ public API
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
-            previous_keypoints: torch.Tensor | None = None) -> list[FitResult]:
-        """Fit a batch of frames: from scratch with every stage, or (sequence mode) from
+            previous_keypoints: torch.Tensor | None = None,
+            start: int | None = None) -> list[FitResult]:
+        """Fit a batch of frames: from scratch with every stage (given ``start``, from
+        that of each frame's distinct starts alone, best first), or (sequence mode) from
         ``warm_start`` with the configuration's sequence stages and the temporal term."""
         with self._counting():
-            return self._fit(frames, warm_start, previous_keypoints)
+            return self._fit(frames, warm_start, previous_keypoints, start)
 
     def start_labelling(self, frame: Frame) -> tuple[str, ...]:
         """The parts whose left and right the best start of ``frame`` exchanges: the start
@@ -201,7 +206,8 @@ class Fitter:
         self.evaluations += len(inputs[0]["transl"])
 
     def _fit(self, frames: list[Frame], warm_start: Params | None,
-             previous_keypoints: torch.Tensor | None) -> list[FitResult]:
+             previous_keypoints: torch.Tensor | None, start_taken: int | None
+             ) -> list[FitResult]:
         start = time.perf_counter()
         self.events = []
         self.evaluations = 0
@@ -232,6 +238,16 @@ class Fitter:
         # takes part for starts and legs, the posture priors for restarts (for starts as
         # configured).
         keep = len(labels) // len(frames)
+        starts: list[int | None] = [None] * len(frames)
+        if keep > 1:
+            distinct = [not all(torch.equal(v[b * keep], v[b * keep + 1])
+                                for v in params.values()) for b in range(len(frames))]
+            starts = [0 if d else None for d in distinct]
+            if start_taken is not None:
+                taken = [b * keep + start_taken for b in range(len(frames))]
+                params = {k: v[taken] for k, v in params.items()}
+                labels = [labels[r] for r in taken]
+                starts, keep = [start_taken if d else None for d in distinct], 1
         choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
                          arms=self.config.start_choice_arms, feet_left_out=feet_left_out)
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
@@ -262,8 +278,8 @@ class Fitter:
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
-            if (before_scene is None and self.config.scene_data_guard > 0 and final
-                    and keep == 1 and self._scene_stage(stage)):
+            if (before_scene is None and warm_start is None and final and keep == 1
+                    and self.config.scene_data_guard > 0 and self._scene_stage(stage)):
                 before_scene = ({k: v.detach().clone() for k, v in rows.params.items()}, final)
             t0, before = time.perf_counter(), self.evaluations
             moves = self.config.scene_stages_translate or not self._scene_stage(stage)
@@ -276,6 +292,8 @@ class Fitter:
                                     rows.depth, previous_keypoints, len(frames))
             if keep > 1 and index + 1 == choice.after:
                 best = self._choose(choice, stage, rows, final, keep)
+                if index + 1 == self.config.start_stages and warm_start is None:
+                    starts = [None if s is None else r % keep for s, r in zip(starts, best)]
                 rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
             if (warm_start is None and self.config.arm_restarts
                     and index + 1 == self.config.start_stages < len(stages)):
@@ -311,7 +329,7 @@ class Fitter:
             losses={k: float(v[i]) for k, v in final.items()}, seconds=elapsed,
             stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()},
             stage_evaluations={k: v / len(frames) for k, v in stage_evaluations.items()},
-            events=list(self.events), swapped=list(labels[i]))
+            events=list(self.events), swapped=list(labels[i]), start=starts[i])
             for i, f in enumerate(frames)]
 
     def _undo_broken_scene(self, frames: list[Frame], stage: Stage, rows: _Rows,

@@ -336,6 +336,52 @@ def test_several_starts_keep_each_frame_its_own_body(body):
         assert float(error.median()) < 15
 
 
+def test_a_fit_can_go_on_from_either_start(body):
+    """A frame with two distinct starts: its fit says which it went on from, and a fit
+    asked to go on from one start alone ends nearer that start than the other (one
+    short stage) and says so."""
+    cam2world = tilted_camera()
+    frame = frame_of(standing_person(body, cam2world, yaw=0.6)[1])
+    config = FitConfig("short", [Stage("global", {"body": 1.0, "pose_prior": 30.0})],
+                       max_iter=2, max_calls=1, start_candidates=2, start_stages=1)
+    fitter = Fitter(body, CAMERA, config)
+    starts, _ = fitter.initialise([frame])
+    assert fitter.fit([frame])[0].start in (0, 1)
+    for taken in (0, 1):
+        result = fitter.fit([frame], start=taken)[0]
+        assert result.start == taken
+        near = [float((result.params["global_orient"] - starts["global_orient"][k]).norm()
+                      + (result.params["body_pose"] - starts["body_pose"][k]).norm())
+                for k in (0, 1)]
+        assert near[taken] < near[1 - taken], (taken, near)
+
+
+def test_a_floating_fit_is_fitted_again_from_its_other_start(body):
+    """A person seen where the scan has nothing under them (its only surface a patch of
+    floor 3 m away) floats whatever its start: the fit is fitted again from the other
+    start, the fit that floats less (here the first, on a tie) is kept with an event, and
+    the discarded fit's cost is charged to it; the ablation fits once."""
+    from prox_engine.pipeline import _fit_fresh
+
+    cam2world = tilted_camera()
+    patch = plane_mesh(size=1.0)
+    patch.apply_translation([3.5, 3.0, 0.0])
+    scene = Scene(patch.vertices, patch.faces, cam2world,
+                  compute_sdf(patch.vertices, patch.faces, dim=48, padding=0.5),
+                  sample_spacing=0.1)
+    frame = frame_of(standing_person(body, cam2world)[1])
+
+    def fit(config: str):
+        return _fit_fresh(Fitter(body, CAMERA, load_config(config), scene), [frame])[0]
+
+    kept, once = fit("prox"), fit("prox-no-floating-restart")
+    assert kept.start is not None and math.isinf(kept.underside_gap)
+    assert any("from the other start" in e and "kept the first" in e for e in kept.events)
+    assert kept.stage_evaluations["discarded_fit"] > 0
+    assert "discarded_fit" not in once.stage_evaluations
+    assert not any("other start" in e for e in once.events)
+
+
 def test_body_evaluations_are_counted_per_stage_and_frame(body):
     """The profile counts every body row evaluated (a batch of B counts B), per stage and
     per frame, as an independent hook on the body sees them; and the hook is removed."""
@@ -701,8 +747,8 @@ def test_scene_stages_that_throw_a_sunk_body_off_its_keypoints_are_undone(body):
     """A seated body fitted exactly, under a tilted camera, 12 cm deep in a seat (a
     cushion gives a few centimetres; the keypoints' noise or size put some fits deeper):
     held where it sits, the scene stages can leave the seat only by bending, and throw
-    the legs off their keypoints. The guard gives the frame its body from before them
-    back, and says so."""
+    the legs off their keypoints. The guard gives a frame fitted from scratch its body
+    from before them back, and says so."""
     cam2world = tilted_camera()
     params = _posed_params(body, cam2world, "sitting")
     c2w = torch.tensor(cam2world, dtype=torch.float32)
@@ -726,11 +772,11 @@ def test_scene_stages_that_throw_a_sunk_body_off_its_keypoints_are_undone(body):
                   sample_spacing=0.1)
 
     def fit(guard: float) -> tuple[float, list[str]]:
-        """The mean joint error and the events."""
+        """The mean joint error and the events of a fit from scratch (held at the depth
+        the keypoints give: no scale search)."""
         config = load_config("prox")
-        config.scene_data_guard = guard
-        result = Fitter(body, CAMERA, config, scene).fit([frame_of(truth)],
-                                                         warm_start=params)[0]
+        config.scene_data_guard, config.scale_search = guard, False
+        result = Fitter(body, CAMERA, config, scene).fit([frame_of(truth)])[0]
         return float((result.keypoints[:25] - truth).norm(dim=1).mean()), result.events
 
     assert load_config("prox").scene_data_guard > 0
@@ -739,6 +785,11 @@ def test_scene_stages_that_throw_a_sunk_body_off_its_keypoints_are_undone(body):
     kept, events = fit(guard=load_config("prox").scene_data_guard)
     assert kept < 0.01, kept
     assert len(events) == 1 and "f: scene stages undone" in events[0], events
+    # Sequence mode's warm-started frames are not guarded: the body left in the seat
+    # would be handed on to the next frame.
+    warm = Fitter(body, CAMERA, load_config("prox"), scene).fit([frame_of(truth)],
+                                                                warm_start=params)[0]
+    assert not warm.events, warm.events
 
 
 def test_rescale_scales_the_body_about_the_camera(body):
