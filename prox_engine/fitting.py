@@ -206,9 +206,9 @@ class Fitter:
         self.evaluations += len(inputs[0]["transl"])
 
     def _fit(self, frames: list[Frame], warm_start: Params | None,
-             previous_keypoints: torch.Tensor | None, start_taken: int | None
+             previous_keypoints: torch.Tensor | None, start: int | None
              ) -> list[FitResult]:
-        start = time.perf_counter()
+        began = time.perf_counter()
         self.events = []
         self.evaluations = 0
         stage_evaluations: dict[str, int] = {}
@@ -223,7 +223,7 @@ class Fitter:
         if warm_start is None:
             self._announce("initialise")
             params, labels = self.initialise(frames)
-            stage_seconds["initialise"] = time.perf_counter() - start
+            stage_seconds["initialise"] = time.perf_counter() - began
             stage_evaluations["initialise"] = self.evaluations
             stages = self.config.stages
             frozen_shape = False
@@ -243,11 +243,11 @@ class Fitter:
             distinct = [not all(torch.equal(v[b * keep], v[b * keep + 1])
                                 for v in params.values()) for b in range(len(frames))]
             starts = [0 if d else None for d in distinct]
-            if start_taken is not None:
-                taken = [b * keep + start_taken for b in range(len(frames))]
+            if start is not None:
+                taken = [b * keep + start for b in range(len(frames))]
                 params = {k: v[taken] for k, v in params.items()}
                 labels = [labels[r] for r in taken]
-                starts, keep = [start_taken if d else None for d in distinct], 1
+                starts, keep = [start if d else None for d in distinct], 1
         choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
                          arms=self.config.start_choice_arms, feet_left_out=feet_left_out)
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
@@ -322,7 +322,7 @@ class Fitter:
         with torch.no_grad():
             out = self.body(params)
         stage_evaluations["output"] = self.evaluations - before
-        elapsed = (time.perf_counter() - start) / len(frames)
+        elapsed = (time.perf_counter() - began) / len(frames)
         return [FitResult(
             name=f.name, params={k: v[i:i + 1].detach().clone() for k, v in params.items()},
             vertices=out.vertices[i].detach(), keypoints=out.keypoints[i].detach(),

@@ -169,7 +169,7 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
         gap = result.underside_gap = quality.underside_gap(result.vertices, fitter.scene)
         check = time.perf_counter() - t0
         if gap > quality.FLOATING and result.start is not None:
-            other = fitter.fit([frame], start=1 - result.start)[0]
+            other = fitter.fit([frame], start=0 if result.start else 1)[0]
             t0 = time.perf_counter()
             other.underside_gap = quality.underside_gap(other.vertices, fitter.scene)
             check += time.perf_counter() - t0
