@@ -358,9 +358,10 @@ def test_a_fit_can_go_on_from_either_start(body):
 
 def test_a_floating_fit_is_fitted_again_from_its_other_start(body):
     """A person seen where the scan has nothing under them (its only surface a patch of
-    floor 3 m away) floats whatever its start: the fit is fitted again from the other
-    start, the fit that floats less (here the first, on a tie) is kept with an event, and
-    the discarded fit's cost is charged to it; the ablation fits once."""
+    floor 3 m away) floats whatever its start: the frame is fitted again from its other
+    start, whose fit would be kept only if it floated less (here a tie: the first is
+    kept) and fit the keypoints clearly better; an event says so, and the discarded
+    fit's cost is charged to the kept one. The ablation fits once."""
     from prox_engine.pipeline import _fit_fresh
 
     cam2world = tilted_camera()
