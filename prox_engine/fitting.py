@@ -315,8 +315,7 @@ class Fitter:
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
                                              + self.evaluations - before)
         if before_scene is not None:
-            final = self._undo_broken_scene(frames, stages[-1], rows, final, *before_scene,
-                                            previous_keypoints)
+            final = self._undo_broken_scene(frames, stages[-1], rows, final, *before_scene)
         params, labels = rows.params, rows.labels
         before = self.evaluations
         with torch.no_grad():
@@ -334,13 +333,12 @@ class Fitter:
 
     def _undo_broken_scene(self, frames: list[Frame], stage: Stage, rows: _Rows,
                            terms: dict[str, torch.Tensor], kept: Params,
-                           kept_terms: dict[str, torch.Tensor],
-                           previous: torch.Tensor | None) -> dict[str, torch.Tensor]:
+                           kept_terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Give back, in place, the body from before the scene stages (``kept``, whose
         terms were ``kept_terms``) to each frame whose scene stages multiplied its data
         term by more than ``config.scene_data_guard`` and added SCENE_GUARD_FLOOR, with
         an event naming it; returns the last ``stage``'s terms (``terms`` for the other
-        frames)."""
+        frames). Only frames fitted from scratch are guarded: no previous keypoints."""
         broke = (terms["data"] > self.config.scene_data_guard * kept_terms["data"]
                  + SCENE_GUARD_FLOOR).nonzero().flatten().tolist()
         if not broke:
@@ -351,12 +349,9 @@ class Fitter:
                 f"{float(kept_terms['data'][b]):.0f} to {float(terms['data'][b]):.0f}")
         undone = rows.taken(broke)
         undone.params = {k: v[broke] for k, v in kept.items()}
-        if previous is not None and len(previous) == len(rows.labels):
-            previous = previous[broke]
         with torch.no_grad():
             redone = self._terms(stage, self.body(undone.params, vertices=self._mesh_read(stage)),
-                                 undone.params, undone.target, undone.conf, undone.depth,
-                                 previous)
+                                 undone.params, undone.target, undone.conf, undone.depth, None)
         index = torch.tensor(broke)
         for name, value in undone.params.items():
             rows.params[name] = rows.params[name].index_copy(0, index, value)

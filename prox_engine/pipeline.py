@@ -154,39 +154,19 @@ RESTART_DATA = 0.9
 
 def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     """``frames`` fitted from scratch; with ``config.floating_restart``, each whose fit
-    floats over every surface (quality.FLOATING) is fitted again from the start its fit
-    did not go on from, which is kept if it floats less and its data term is under
-    RESTART_DATA times the first's: the start choice judges how each start meets the
-    scene after two stages, and where the stages after it lift the chosen body off every
-    surface, the reason it was chosen over a start that fits the keypoints better is
-    gone (seed 16's kneeler, crouching 8 cm over the floor, 441 -> 144 mm)."""
+    floats over every surface is fitted again from the start its fit did not go on from
+    (see :func:`_less_floating`, with RESTART_DATA): the start choice judges how each
+    start meets the scene after two stages, and where the stages after it lift the
+    chosen body off every surface, the reason it was chosen over a start that fits the
+    keypoints better is gone (seed 16's kneeler, crouching 8 cm over the floor, 441 ->
+    144 mm)."""
     results = fitter.fit(frames)
     if not fitter.config.floating_restart or fitter.scene is None:
         return results
-    kept = []
-    for frame, result in zip(frames, results):
-        t0 = time.perf_counter()
-        gap = result.underside_gap = quality.underside_gap(result.vertices, fitter.scene)
-        check = time.perf_counter() - t0
-        if gap > quality.FLOATING and result.start is not None:
-            other = fitter.fit([frame], start=0 if result.start else 1)[0]
-            t0 = time.perf_counter()
-            other.underside_gap = quality.underside_gap(other.vertices, fitter.scene)
-            check += time.perf_counter() - t0
-            better = (other.underside_gap < gap
-                      and other.losses["data"] < RESTART_DATA * result.losses["data"])
-            other.events.append(
-                f"floated {quality.gap_text(gap)} over any surface, data term "
-                f"{result.losses['data']:.0f}; from the other start "
-                f"{quality.gap_text(other.underside_gap)}, {other.losses['data']:.0f}; kept "
-                + ("that" if better else "the first"))
-            result.events.append(other.events[-1])
-            if better:
-                result, other = other, result
-            _discard(result, other)
-        _charge(result, "floating_check", check, 0)
-        kept.append(result)
-    return kept
+    return [result if result.start is None else _less_floating(
+        fitter, result, lambda: fitter.fit([frame], start=0 if result.start else 1)[0],
+        RESTART_DATA, ("", "first", "from the other start", "refit"))
+        for frame, result in zip(frames, results)]
 
 
 def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: float
@@ -213,28 +193,43 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
 
 def _unless_floating(fitter: Fitter, frame: Frame, results: list[FitResult]
                      ) -> list[FitResult]:
-    """A warm-started fit whose underside floats over every surface (quality.FLOATING)
-    is fitted again from scratch, and the fit that floats less is kept: the keypoint
+    """A warm-started fit whose underside floats over every surface is fitted again from
+    scratch, and the fit that floats less is kept (:func:`_less_floating`): the keypoint
     stage lets a frame drift along the camera rays from its neighbour's depth, and the
     contact stage alone cannot pull it back (seed 35's bed, 22 cm up, 576 mm off)."""
+    return [_less_floating(fitter, results[0], lambda: fitter.fit([frame])[0], None,
+                           ("sequence: its neighbour's fit ", "neighbour's",
+                            "a fit from scratch", "fit from scratch"))]
+
+
+def _less_floating(fitter: Fitter, result: FitResult, refit: Callable[[], FitResult],
+                   data_share: float | None, words: tuple[str, str, str, str]
+                   ) -> FitResult:
+    """``result``, unless it floats over every surface (quality.FLOATING): then the fit
+    ``refit()`` gives, if that floats less and (given ``data_share``) its data term is
+    under ``data_share`` times the first's. The fit kept carries an event in ``words``
+    (what floated, the first's name, the refit's, and the refit's name as kept) and the
+    dropped fit's cost; the floating checks are charged to it."""
     t0 = time.perf_counter()
-    gap = results[0].underside_gap = quality.underside_gap(results[0].vertices, fitter.scene)
+    gap = result.underside_gap = quality.underside_gap(result.vertices, fitter.scene)
     check = time.perf_counter() - t0
     if gap <= quality.FLOATING:
-        _charge(results[0], "floating_check", check, 0)
-        return results
-    fresh = fitter.fit([frame])
+        _charge(result, "floating_check", check, 0)
+        return result
+    other = refit()
     t0 = time.perf_counter()
-    fresh_gap = fresh[0].underside_gap = quality.underside_gap(fresh[0].vertices,
-                                                               fitter.scene)
+    other_gap = other.underside_gap = quality.underside_gap(other.vertices, fitter.scene)
     check += time.perf_counter() - t0
-    kept, dropped = (fresh, results) if fresh_gap < gap else (results, fresh)
-    kept[0].events.append(f"sequence: its neighbour's fit floated {quality.gap_text(gap)} "
-                          f"over any surface, a fit from scratch "
-                          f"{quality.gap_text(fresh_gap)}; kept the "
-                          + ("fit from scratch" if kept is fresh else "neighbour's"))
-    _discard(kept[0], dropped[0])
-    _charge(kept[0], "floating_check", check, 0)
+    better = other_gap < gap and (
+        data_share is None or other.losses["data"] < data_share * result.losses["data"])
+    kept, dropped = (other, result) if better else (result, other)
+    subject, first, second, second_kept = words
+    kept.events.append(
+        f"{subject}floated {quality.gap_text(gap)} over any surface (data term "
+        f"{result.losses['data']:.0f}), {second} {quality.gap_text(other_gap)} "
+        f"({other.losses['data']:.0f}); kept the " + (second_kept if better else first))
+    _discard(kept, dropped)
+    _charge(kept, "floating_check", check, 0)
     return kept
 
 
