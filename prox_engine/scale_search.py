@@ -98,36 +98,45 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
     part touches, nothing enters, the body rests on a surface): how well the body can meet
     the scene at all, comparable between bodies fitted at different sizes."""
-    scales = SCALES[:, None, None]
     prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     carrying = carrying[sampled]
     counted = torch.ones_like(carrying) if toes is None else ~toes[sampled]
+    every_part = torch.cat(contact_parts) if contact_parts else None  # one lookup for all
+    part_sizes = [len(ids) for ids in contact_parts]
     best, lowest = [], []
     for b in range(vertices.shape[0]):
-        cost = torch.zeros_like(prior)
-        scaled = scales * vertices[b, sampled]  # (S, N, 3)
-        signed = scene.signed_distance(scaled) if use_penetration or use_support else None
-        if use_penetration:
-            depth = torch.relu(-signed - PENETRATION_MARGIN)
-            inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
-            cost = cost + PENETRATION_WEIGHT * inside.mean(1)
-        if use_contact and contact_parts:
-            misses = []
-            for ids in contact_parts:
-                points = scales * vertices[b, ids]
-                dist, near = contact_distances(points, normals[b, ids].expand_as(points), scene,
-                                               max_angle_deg, max_distance)
-                misses.append(_miss(dist, near, rho))
-            cost = cost + torch.stack(misses).mean(0)
-        if use_support:
-            cost = cost + SUPPORT_WEIGHT * _unsupported(
-                scaled, signed, normals[b, sampled], carrying, scene, rho)
-        if seen_joints is not None and len(seen_joints[b]):
-            limit = scene.visible_scale(seen_joints[b], float(SCALES[-1]))
-            cost = cost + VISIBILITY_WEIGHT * (SCALES[:, None] > limit).float().mean(1)
-        pick = int((cost + prior).argmin())
-        best.append(SCALES[pick])
+        limit = (scene.visible_scale(seen_joints[b], float(SCALES[-1]))
+                 if seen_joints is not None and len(seen_joints[b]) else None)
+
+        def cost_at(picked: torch.Tensor) -> torch.Tensor:
+            """The cost without the prior (len(picked),) at the scales SCALES[picked]."""
+            scales = SCALES[picked, None, None]
+            cost = torch.zeros(len(picked))
+            scaled = scales * vertices[b, sampled]  # (S, N, 3)
+            signed = scene.signed_distance(scaled) if use_penetration or use_support else None
+            if use_penetration:
+                depth = torch.relu(-signed - PENETRATION_MARGIN)
+                inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
+                cost = cost + PENETRATION_WEIGHT * inside.mean(1)
+            if use_contact and contact_parts:
+                points = scales * vertices[b, every_part]
+                dist, near = contact_distances(points, normals[b, every_part].expand_as(points),
+                                               scene, max_angle_deg, max_distance)
+                misses = [_miss(d, n, rho) for d, n in zip(dist.split(part_sizes, 1),
+                                                            near.split(part_sizes, 1))]
+                cost = cost + torch.stack(misses).mean(0)
+            if use_support:
+                cost = cost + SUPPORT_WEIGHT * _unsupported(
+                    scaled, signed, normals[b, sampled], carrying, scene, rho)
+            if limit is not None:
+                cost = cost + VISIBILITY_WEIGHT * (scales[:, 0] > limit).float().mean(1)
+            return cost
+
+        picked = torch.arange(len(SCALES))
+        cost = cost_at(picked)
+        pick = int((cost + prior[picked]).argmin())
+        best.append(SCALES[picked[pick]])
         lowest.append(cost[pick])
     return torch.stack(best), torch.stack(lowest)
 

@@ -66,7 +66,9 @@ class SignedDistanceField:
         central differences over half a voxel."""
         h = self.voxel_size / 2
         offsets = torch.eye(3, dtype=points.dtype) * h
-        grad = torch.stack([self(points + o) - self(points - o) for o in offsets], -1)
+        # the six probes in one lookup: the same values, a sixth of the calls
+        probes = self(torch.stack([points + o for o in offsets] + [points - o for o in offsets]))
+        grad = torch.stack([probes[i] - probes[i + 3] for i in range(3)], -1)
         return grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
 
     def save(self, json_path: Path, npy_path: Path) -> None:
