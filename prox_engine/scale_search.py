@@ -14,6 +14,7 @@ the thighs against a table's front edge)."""
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import torch
 
@@ -41,6 +42,12 @@ UPWARD = 0.7  # scene surfaces whose normal points this far up can carry a body
 LOWEST = 0.15
 LOWEST_SHARE = 0.25
 CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
+# The cost is smooth in the scale but has several valleys (the feet on the floor, the
+# buttocks on a seat): it is evaluated at every third scale, then at every scale about the
+# three lowest of those. Over 165 searches of 36 frames this picked the full grid's scale
+# every time, in 55 % of its time (about the two lowest of every third, one was 11 % off).
+COARSE = 3
+REFINED = 3
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
 # adult): 97 scales of the whole mesh were a fifth of a frame's time.
 STRIDE = 3
@@ -133,12 +140,28 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 cost = cost + VISIBILITY_WEIGHT * (scales[:, 0] > limit).float().mean(1)
             return cost
 
-        picked = torch.arange(len(SCALES))
-        cost = cost_at(picked)
+        picked, cost = coarse_to_fine(cost_at, prior)
         pick = int((cost + prior[picked]).argmin())
         best.append(SCALES[picked[pick]])
         lowest.append(cost[pick])
     return torch.stack(best), torch.stack(lowest)
+
+
+def coarse_to_fine(cost_at: Callable[[torch.Tensor], torch.Tensor], prior: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The indices into SCALES that the search evaluates with ``cost_at`` (indices -> (S,)
+    costs), and their costs: every COARSE-th scale and the last, then every scale between
+    the coarse neighbours of the REFINED lowest of those (with the size ``prior`` (97,))."""
+    count = len(SCALES)
+    coarse = torch.unique(torch.cat([torch.arange(0, count, COARSE), torch.tensor([count - 1])]))
+    cost = cost_at(coarse)
+    lowest = coarse[(cost + prior[coarse]).argsort()[:REFINED]]
+    near = torch.unique(torch.cat([torch.arange(int(i) - COARSE + 1, int(i) + COARSE)
+                                   for i in lowest]).clamp(0, count - 1))
+    extra = near[~torch.isin(near, coarse)]
+    if len(extra) == 0:
+        return coarse, cost
+    return torch.cat([coarse, extra]), torch.cat([cost, cost_at(extra)])
 
 
 def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tensor,

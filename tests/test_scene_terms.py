@@ -636,3 +636,26 @@ def test_penetration_reads_one_scene_vertex_per_centimetre(body):
         whole = penetration_energy(rest[:, every], scene)
         assert abs(float(penetration_energy(rest[:, kept], scene, weights=counts) / whole)
                    - 1) < 0.06, depth
+
+
+def test_scale_search_refines_about_its_lowest_coarse_scales():
+    """The search evaluates every third scale, then every scale about the three lowest:
+    it finds a minimum between coarse scales in the lower of two valleys, and leaves most
+    scales unevaluated."""
+    from prox_engine.scale_search import SCALES, coarse_to_fine
+
+    count, evaluated = len(SCALES), []
+
+    def cost_at(picked: torch.Tensor) -> torch.Tensor:
+        evaluated.extend(picked.tolist())
+        i = picked.float()
+        return torch.minimum(0.02 * (i - 22).abs() + 0.05, 0.03 * (i - 61).abs())
+
+    prior = torch.zeros(count)
+    picked, cost = coarse_to_fine(cost_at, prior)
+    assert int(picked[cost.argmin()]) == 61 and 61 % 3 != 0
+    assert sorted(evaluated) == sorted(set(evaluated)) and len(evaluated) < count / 2
+    # The prior takes part in which coarse scales are refined.
+    prior[40:] = 1.0
+    picked, cost = coarse_to_fine(cost_at, prior)
+    assert int(picked[(cost + prior[picked]).argmin()]) == 22
