@@ -14,7 +14,7 @@ the thighs against a table's front edge)."""
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -42,12 +42,9 @@ UPWARD = 0.7  # scene surfaces whose normal points this far up can carry a body
 LOWEST = 0.15
 LOWEST_SHARE = 0.25
 CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
-# The cost is smooth in the scale but has several valleys (the feet on the floor, the
-# buttocks on a seat): it is evaluated at every third scale, then at every scale about the
-# three lowest of those. Over 165 searches of 36 frames this picked the full grid's scale
-# every time, in 55 % of its time (about the two lowest of every third, one was 11 % off).
-COARSE = 3
-REFINED = 3
+# The search evaluates the scales CHUNK at a time, nearest the fitted size first, and
+# skips those whose size prior alone exceeds the best total found (bounded_search).
+CHUNK = 16
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
 # adult): 97 scales of the whole mesh were a fifth of a frame's time.
 STRIDE = 3
@@ -111,13 +108,14 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     counted = torch.ones_like(carrying) if toes is None else ~toes[sampled]
     every_part = torch.cat(contact_parts) if contact_parts else None  # one lookup for all
     part_sizes = [len(ids) for ids in contact_parts]
-    best, lowest = [], []
+    best, lowest_cost = [], []
     for b in range(vertices.shape[0]):
+        low = _lowest(SCALES[0] * vertices[b, sampled], scene)
         limit = (scene.visible_scale(seen_joints[b], float(SCALES[-1]))
                  if seen_joints is not None and len(seen_joints[b]) else None)
 
         def cost_at(picked: torch.Tensor) -> torch.Tensor:
-            """The cost without the prior (len(picked),) at the scales SCALES[picked]."""
+            """Contact, penetration and support costs (len(picked),) at SCALES[picked]."""
             scales = SCALES[picked, None, None]
             cost = torch.zeros(len(picked))
             scaled = scales * vertices[b, sampled]  # (S, N, 3)
@@ -135,44 +133,59 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 cost = cost + torch.stack(misses).mean(0)
             if use_support:
                 cost = cost + SUPPORT_WEIGHT * _unsupported(
-                    scaled, signed, normals[b, sampled], carrying, scene, rho)
-            if limit is not None:
-                cost = cost + VISIBILITY_WEIGHT * (scales[:, 0] > limit).float().mean(1)
+                    scaled, signed, normals[b, sampled], carrying, low, scene, rho)
             return cost
 
-        picked, cost = coarse_to_fine(cost_at, prior)
+        # The share of seen joints behind the scan, at every scale (one ray per joint).
+        hidden = (VISIBILITY_WEIGHT * (SCALES[:, None] > limit).float().mean(1)
+                  if limit is not None else torch.zeros_like(prior))
+        picked, cost = bounded_search(cost_at, hidden, prior)
         pick = int((cost + prior[picked]).argmin())
         best.append(SCALES[picked[pick]])
-        lowest.append(cost[pick])
-    return torch.stack(best), torch.stack(lowest)
+        lowest_cost.append(cost[pick])
+    return torch.stack(best), torch.stack(lowest_cost)
 
 
-def coarse_to_fine(cost_at: Callable[[torch.Tensor], torch.Tensor], prior: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The indices into SCALES that the search evaluates with ``cost_at`` (indices -> (S,)
-    costs), and their costs: every COARSE-th scale and the last, then every scale between
-    the coarse neighbours of the REFINED lowest of those (with the size ``prior`` (97,))."""
-    count = len(SCALES)
-    coarse = torch.unique(torch.cat([torch.arange(0, count, COARSE), torch.tensor([count - 1])]))
-    cost = cost_at(coarse)
-    lowest = coarse[(cost + prior[coarse]).argsort()[:REFINED]]
-    near = torch.unique(torch.cat([torch.arange(int(i) - COARSE + 1, int(i) + COARSE)
-                                   for i in lowest]).clamp(0, count - 1))
-    extra = near[~torch.isin(near, coarse)]
-    if len(extra) == 0:
-        return coarse, cost
-    return torch.cat([coarse, extra]), torch.cat([cost, cost_at(extra)])
+def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], hidden: torch.Tensor,
+                   prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The indices into SCALES (ascending) at which the search evaluates ``cost_at``
+    (indices -> (S,) costs >= 0 of contact, penetration and support) and their costs
+    with ``hidden`` (97,) added. The other terms being >= 0, ``hidden`` plus the size
+    ``prior`` (97,) bounds each scale's total from below: scales are evaluated CHUNK at
+    a time in the order of that bound, and those whose bound exceeds the lowest total
+    found are not, since they cannot win. The same pick as evaluating every scale."""
+    bound = hidden + prior
+    lowest = torch.tensor(float("inf"))
+    picked, costs = [], []
+    for chunk in bound.argsort().split(CHUNK):
+        chunk = chunk[bound[chunk] <= lowest]
+        if len(chunk) == 0:
+            break
+        cost = cost_at(chunk) + hidden[chunk]
+        lowest = torch.minimum(lowest, (cost + prior[chunk]).min())
+        picked.append(chunk)
+        costs.append(cost)
+    picked, cost = torch.cat(picked), torch.cat(costs)
+    order = picked.argsort()  # ties go to the smaller scale, as over the whole grid
+    return picked[order], cost[order]
+
+
+def _lowest(points: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """(N,) bool: the body's points (N, 3) within LOWEST of its height span of the lowest.
+    Scaling about the camera keeps the order: the search reads them once, at SCALES[0],
+    whichever scales it evaluates (rounding would otherwise move a vertex at the edge)."""
+    height = points @ scene.up_in_camera()
+    return height - height.min() <= LOWEST * (height.max() - height.min())
 
 
 def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tensor,
-                 carrying: torch.Tensor, scene: Scene, rho: float) -> torch.Tensor:
-    """(S,) robust gap (0: resting, 1: far) between the downward-facing lowest or
+                 carrying: torch.Tensor, lowest: torch.Tensor, scene: Scene, rho: float
+                 ) -> torch.Tensor:
+    """(S,) robust gap (0: resting, 1: far) between the downward-facing ``lowest`` or
     ``carrying`` (N,) body vertices (LOWEST_SHARE of it: lowest only) of each scaled copy
     of a body, ``points`` (S, N, 3) camera frame with their signed distances
     ``signed`` (S, N) and outward ``normals`` (N, 3), and the upward-facing scene
     surfaces nearest to them."""
-    height = points[0] @ scene.up_in_camera()  # scaling about the camera keeps the order
-    lowest = height - height.min() <= LOWEST * (height.max() - height.min())
     under = (scene.world_normals(normals)[:, 2] < DOWNWARD) & (lowest | carrying)
     far = points.new_ones(points.shape[0])
     if not under.any():

@@ -638,24 +638,31 @@ def test_penetration_reads_one_scene_vertex_per_centimetre(body):
                    - 1) < 0.06, depth
 
 
-def test_scale_search_refines_about_its_lowest_coarse_scales():
-    """The search evaluates every third scale, then every scale about the three lowest:
-    it finds a minimum between coarse scales in the lower of two valleys, and leaves most
-    scales unevaluated."""
-    from prox_engine.scale_search import SCALES, coarse_to_fine
+def test_scale_search_skips_only_scales_that_cannot_win():
+    """The search skips scales whose size prior and hidden joints alone exceed the best
+    total found: on jagged costs (a one-scale valley, as contact parts switching on make)
+    it picks what the whole grid picks, and evaluates fewer scales the better the best."""
+    from prox_engine.scale_search import SCALES, bounded_search
 
-    count, evaluated = len(SCALES), []
+    count = len(SCALES)
+    prior = 0.1 * (torch.log(SCALES) / 0.06) ** 2 / 2
+    generator = torch.Generator().manual_seed(0)
+    for trial in range(50):
+        costs = torch.rand(count, generator=generator)
+        costs[int(torch.randint(count, (1,), generator=generator))] = 0.01 * trial
+        hidden = (torch.arange(count) > 70 + trial % 20).float()
+        evaluated = []
 
-    def cost_at(picked: torch.Tensor) -> torch.Tensor:
-        evaluated.extend(picked.tolist())
-        i = picked.float()
-        return torch.minimum(0.02 * (i - 22).abs() + 0.05, 0.03 * (i - 61).abs())
+        def cost_at(picked: torch.Tensor) -> torch.Tensor:
+            evaluated.extend(picked.tolist())
+            return costs[picked]
 
-    prior = torch.zeros(count)
-    picked, cost = coarse_to_fine(cost_at, prior)
-    assert int(picked[cost.argmin()]) == 61 and 61 % 3 != 0
-    assert sorted(evaluated) == sorted(set(evaluated)) and len(evaluated) < count / 2
-    # The prior takes part in which coarse scales are refined.
-    prior[40:] = 1.0
-    picked, cost = coarse_to_fine(cost_at, prior)
-    assert int(picked[(cost + prior[picked]).argmin()]) == 22
+        picked, cost = bounded_search(cost_at, hidden, prior)
+        assert picked.tolist() == sorted(set(evaluated))
+        assert torch.equal(cost, costs[picked] + hidden[picked])
+        whole = costs + hidden + prior
+        assert int(picked[(cost + prior[picked]).argmin()]) == int(whole.argmin())
+    costs = torch.ones(count)
+    costs[48] = 0.0  # a body that meets the scene at its fitted size
+    picked, _ = bounded_search(lambda i: costs[i], torch.zeros(count), prior)
+    assert 48 in picked.tolist() and len(picked) < count / 2
