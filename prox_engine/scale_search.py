@@ -43,7 +43,8 @@ LOWEST = 0.15
 LOWEST_SHARE = 0.25
 CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
 # The search evaluates the scales CHUNK at a time, nearest the fitted size first, and
-# skips those whose size prior alone exceeds the best total found (bounded_search).
+# skips those whose size prior and hidden joints alone exceed the best total found
+# (bounded_search): about half of them, the same pick.
 CHUNK = 16
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
 # adult): 97 scales of the whole mesh were a fifth of a frame's time.
@@ -101,7 +102,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
     part touches, nothing enters, the body rests on a surface): how well the body can meet
-    the scene at all, comparable between bodies fitted at different sizes."""
+    the scene at all, comparable between bodies fitted at different sizes. Scales that
+    cannot win are not evaluated (:func:`bounded_search`)."""
     prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     carrying = carrying[sampled]
@@ -173,7 +175,7 @@ def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], hidden: torc
 def _lowest(points: torch.Tensor, scene: Scene) -> torch.Tensor:
     """(N,) bool: the body's points (N, 3) within LOWEST of its height span of the lowest.
     Scaling about the camera keeps the order: the search reads them once, at SCALES[0],
-    whichever scales it evaluates (rounding would otherwise move a vertex at the edge)."""
+    the same vertices whichever scales it evaluates."""
     height = points @ scene.up_in_camera()
     return height - height.min() <= LOWEST * (height.max() - height.min())
 
