@@ -112,7 +112,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     part_sizes = [len(ids) for ids in contact_parts]
     best, lowest_cost = [], []
     for b in range(vertices.shape[0]):
-        low = _lowest(SCALES[0] * vertices[b, sampled], scene)
+        lowest_vertices = _lowest(SCALES[0] * vertices[b, sampled], scene)
         limit = (scene.visible_scale(seen_joints[b], float(SCALES[-1]))
                  if seen_joints is not None and len(seen_joints[b]) else None)
 
@@ -135,7 +135,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 cost = cost + torch.stack(misses).mean(0)
             if use_support:
                 cost = cost + SUPPORT_WEIGHT * _unsupported(
-                    scaled, signed, normals[b, sampled], carrying, low, scene, rho)
+                    scaled, signed, normals[b, sampled], carrying, lowest_vertices, scene, rho)
             return cost
 
         # The share of seen joints behind the scan, at every scale (one ray per joint).
@@ -157,14 +157,14 @@ def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], hidden: torc
     a time in the order of that bound, and those whose bound exceeds the lowest total
     found are not, since they cannot win. The same pick as evaluating every scale."""
     bound = hidden + prior
-    lowest = torch.tensor(float("inf"))
+    best_total = torch.tensor(float("inf"))
     picked, costs = [], []
     for chunk in bound.argsort().split(CHUNK):
-        chunk = chunk[bound[chunk] <= lowest]
+        chunk = chunk[bound[chunk] <= best_total]
         if len(chunk) == 0:
             break
         cost = cost_at(chunk) + hidden[chunk]
-        lowest = torch.minimum(lowest, (cost + prior[chunk]).min())
+        best_total = torch.minimum(best_total, (cost + prior[chunk]).min())
         picked.append(chunk)
         costs.append(cost)
     picked, cost = torch.cat(picked), torch.cat(costs)
