@@ -5,6 +5,7 @@ a baseline run of the same recording. Static files that open from disk; no exter
 """
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import time
@@ -291,7 +292,20 @@ def write_index(out: Path, recordings: list[str], title: str) -> Path:
     return index
 
 
+def warm_up() -> None:
+    """Import the rendering stack and compile every template (about 0.3 s), without
+    creating a GL context: a worker does it before it forks, so that no job pays for it."""
+    from . import render  # noqa: F401  (imports OpenGL, creates no context)
+
+    env = _templates()
+    for name in env.list_templates(extensions=["html"]):
+        env.get_template(name)
+
+
+@functools.cache
 def _templates():
+    """The report pages' Jinja2 environment: one per process, which keeps its compiled
+    templates."""
     from jinja2 import Environment, FileSystemLoader, select_autoescape
 
     env = Environment(loader=FileSystemLoader(template_dir()),

@@ -2,8 +2,9 @@
 
 Each job runs in a forked work-horse, so a job that crashes or is killed takes only its
 horse down; the worker reports the loss and the job is retried once or failed. The parent
-loads the default body model and runs it once on one thread before it forks (every horse
-inherits it warm, so no job pays for loading it), and never renders (a forked child's
+loads the default body model and runs it once on one thread, imports the report's modules
+and compiles its templates before it forks (every horse inherits them warm, so no job pays
+for loading them), and never renders (a forked child's
 OpenGL context hangs; see docs/service.md).
 """
 from __future__ import annotations
