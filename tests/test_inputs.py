@@ -93,6 +93,31 @@ def test_unreadable_mesh(tmp_path):
         load_scene_mesh(tmp_path / "Missing.ply")
 
 
+def test_a_ply_scan_reads_as_trimesh_reads_it(tmp_path):
+    """PLY scans are read without building a trimesh mesh (no per-face colours, no
+    hashing), to the same arrays; a PLY of quads still comes out as triangles."""
+    import trimesh
+
+    scan = trimesh.creation.icosphere(subdivisions=2)
+    scan.visual.vertex_colors = np.tile([200, 180, 160, 255], (len(scan.vertices), 1))
+    for encoding in ("binary", "ascii"):
+        path = tmp_path / f"Room_{encoding}.ply"
+        path.write_bytes(scan.export(file_type="ply", encoding=encoding))
+        expected = trimesh.load(path, force="mesh", process=False)
+        for content in (None, path.read_bytes()):
+            vertices, faces = load_scene_mesh(path, content)
+            assert vertices.dtype == np.float64 and faces.dtype == np.int64
+            np.testing.assert_array_equal(vertices, expected.vertices)
+            np.testing.assert_array_equal(faces, expected.faces)
+    quads = tmp_path / "Quads.ply"
+    quads.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
+                     "property float y\nproperty float z\nelement face 1\n"
+                     "property list uchar int vertex_indices\nend_header\n"
+                     "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    vertices, faces = load_scene_mesh(quads)
+    assert faces.shape == (2, 3) and len(vertices) == 4
+
+
 def test_configs(tmp_path):
     for name in ("rgb", "prox", "smplifyd", "proxd"):
         config = load_config(name)
