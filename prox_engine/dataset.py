@@ -213,26 +213,35 @@ def load_cam2world(path: Path, content: bytes | None = None) -> np.ndarray:
     return matrix
 
 
+@dataclass
+class SceneScan:
+    """A scene scan as read: vertices (N, 3) float64, triangles (M, 3) int64 and, when
+    the file has them, vertex colours (N, 4) RGBA uint8."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colours: np.ndarray | None = None
+
+
 def load_scene_mesh(path: Path, content: bytes | None = None
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (N, 3) float64 and triangles (M, 3) int64 of a scene scan (from
     ``content`` when given, ``path`` naming it and its format)."""
-    import trimesh
+    scan = load_scene_scan(path, content)
+    return scan.vertices, scan.faces
 
+
+def load_scene_scan(path: Path, content: bytes | None = None) -> SceneScan:
+    """A scene scan with its vertex colours (see :func:`load_scene_mesh`), checked."""
     path = Path(path)
     if content is None and not path.exists():
         raise InputError(path, "scene mesh not found")
     try:
-        vertices, faces = (_ply_arrays(path, content) if path.suffix.lower() == ".ply"
-                           else (None, None))
-        if faces is None:  # another format, or a PLY of polygons that trimesh triangulates
-            source = {"file_obj": io.BytesIO(content), "file_type": path.suffix.lstrip(".")} \
-                if content is not None else {"file_obj": path}
-            mesh = trimesh.load(**source, force="mesh", process=False)
-            faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
-            vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
+        scan = _read_ply(path, content) if path.suffix.lower() == ".ply" else None
+        scan = scan or _read_with_trimesh(path, content)
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise InputError(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
+    vertices, faces = scan.vertices, scan.faces
     if len(faces) == 0 or len(vertices) == 0:
         raise InputError(path, "mesh has no triangles")
     if faces.ndim != 2 or faces.shape[1] != 3:
@@ -249,20 +258,41 @@ def load_scene_mesh(path: Path, content: bytes | None = None
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     if not (area > 1e-12).any():
         raise InputError(path, "mesh has only degenerate (zero-area) triangles")
-    return vertices, faces
+    return scan
 
 
-def _ply_arrays(path: Path, content: bytes | None
-                ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """A PLY's vertices and triangles as trimesh's reader gives them, without building a
-    mesh (which derives colours per face and hashes every array: 0.4 s of a 290k-face
-    scan's 0.45); (None, None) where its faces are not all triangles."""
+def _read_ply(path: Path, content: bytes | None) -> SceneScan | None:
+    """A PLY as trimesh's reader gives it, without building a mesh (which derives colours
+    per face and hashes every array: 0.4 s of a 290k-face scan's 0.45); None where its
+    faces are not all triangles."""
     from trimesh.exchange.ply import load_ply
 
     with (io.BytesIO(content) if content is not None else path.open("rb")) as stream:
         arrays = load_ply(stream)
     faces = np.asarray(arrays.get("faces", np.zeros((0, 3))))
     if faces.ndim != 2 or faces.shape[1] != 3:
-        return None, None
-    return (np.asarray(arrays.get("vertices", np.zeros((0, 3))), dtype=np.float64),
-            faces.astype(np.int64))
+        return None
+    vertices = np.asarray(arrays.get("vertices", np.zeros((0, 3))), dtype=np.float64)
+    colours = arrays.get("vertex_colors")
+    if colours is not None:
+        colours = np.asarray(colours, dtype=np.uint8)
+        if colours.shape == (len(vertices), 3):
+            colours = np.concatenate([colours, np.full((len(vertices), 1), 255, np.uint8)], 1)
+        elif colours.shape != (len(vertices), 4):
+            colours = None
+    return SceneScan(vertices, faces.astype(np.int64), colours)
+
+
+def _read_with_trimesh(path: Path, content: bytes | None) -> SceneScan:
+    """Any format trimesh reads (polygons triangulated), with vertex colours if any."""
+    import trimesh
+
+    source = {"file_obj": io.BytesIO(content), "file_type": path.suffix.lstrip(".")} \
+        if content is not None else {"file_obj": path}
+    mesh = trimesh.load(**source, force="mesh", process=False)
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    visual = getattr(mesh, "visual", None)
+    colours = (np.asarray(visual.vertex_colors, dtype=np.uint8)
+               if getattr(visual, "kind", None) == "vertex" else None)
+    return SceneScan(vertices, np.asarray(getattr(mesh, "faces", np.zeros((0, 3))),
+                                          dtype=np.int64), colours)

@@ -19,15 +19,14 @@ import numpy as np
 from . import viewer
 from .camera import Camera
 from .config import load_config
-from .dataset import Recording, frame_rate, load_calibration, load_cam2world
+from .dataset import (Recording, SceneScan, frame_rate, load_calibration, load_cam2world,
+                      load_scene_scan)
 from .errors import InputError
 from .output import atomic_write_text
 from .plots import line_chart
 from .video import VideoWriter
 
 if TYPE_CHECKING:
-    import trimesh
-
     from .render import BodyMesh  # imports OpenGL: loaded only when rendering
 
 SIZE = (960, 540)
@@ -110,15 +109,13 @@ class Setting:
     recording: Recording
     camera: Camera
     cam2world: np.ndarray
-    scene: trimesh.Trimesh
+    scene: SceneScan
     runs: list[tuple[str, FittedRecording]]
     bounds: np.ndarray  # (2, 3) world-frame corners
 
     @classmethod
     def load(cls, fit: FittedRecording, data: Path, frames: list[str],
              baseline: FittedRecording | None = None) -> Setting:
-        import trimesh
-
         rec = Recording(Path(data), fit.summary["recording"])
         registered = fit.summary.get("registration", {}).get("cam2world")  # as fitted
         cam2world = (np.asarray(registered, dtype=np.float64).reshape(4, 4) if registered
@@ -132,14 +129,13 @@ class Setting:
                 bounds = np.stack([np.minimum(bounds[0], points.min(0)),
                                    np.maximum(bounds[1], points.max(0))])
         return cls(rec, load_calibration(rec.calibration_path), cam2world,
-                   trimesh.load(rec.scene_path, force="mesh", process=False), runs, bounds)
+                   load_scene_scan(rec.scene_path), runs, bounds)
 
     @property
     def scene_colours(self) -> np.ndarray | None:
         """The scan's vertex colours (V, 4) in [0, 1], when it has them (PROX scans do)."""
-        if self.scene.visual.kind != "vertex":
-            return None
-        return np.asarray(self.scene.visual.vertex_colors, dtype=float) / 255
+        colours = self.scene.colours
+        return None if colours is None else colours.astype(float) / 255
 
     def body(self, prefix: str, run: FittedRecording, frame: str, flags: bool = True
              ) -> BodyMesh:

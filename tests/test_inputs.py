@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from prox_engine.config import load_config
-from prox_engine.dataset import load_calibration, load_cam2world, load_scene_mesh
+from prox_engine.dataset import (load_calibration, load_cam2world, load_scene_mesh,
+                                 load_scene_scan)
 from prox_engine.errors import InputError
 from prox_engine.keypoints import load_keypoints
 
@@ -95,7 +96,8 @@ def test_unreadable_mesh(tmp_path):
 
 def test_a_ply_scan_reads_as_trimesh_reads_it(tmp_path):
     """PLY scans are read without building a trimesh mesh (no per-face colours, no
-    hashing), to the same arrays; a PLY of quads still comes out as triangles."""
+    hashing), to the same arrays and vertex colours; a PLY of quads still comes out as
+    triangles."""
     import trimesh
 
     scan = trimesh.creation.icosphere(subdivisions=2)
@@ -109,13 +111,15 @@ def test_a_ply_scan_reads_as_trimesh_reads_it(tmp_path):
             assert vertices.dtype == np.float64 and faces.dtype == np.int64
             np.testing.assert_array_equal(vertices, expected.vertices)
             np.testing.assert_array_equal(faces, expected.faces)
+            np.testing.assert_array_equal(load_scene_scan(path, content).colours,
+                                          expected.visual.vertex_colors)
     quads = tmp_path / "Quads.ply"
     quads.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
                      "property float y\nproperty float z\nelement face 1\n"
                      "property list uchar int vertex_indices\nend_header\n"
                      "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
-    vertices, faces = load_scene_mesh(quads)
-    assert faces.shape == (2, 3) and len(vertices) == 4
+    scan = load_scene_scan(quads)
+    assert scan.faces.shape == (2, 3) and len(scan.vertices) == 4 and scan.colours is None
 
 
 def test_configs(tmp_path):
