@@ -289,8 +289,8 @@ def write_index(out: Path, recordings: list[str], title: str) -> Path:
 
 
 def warm_up() -> None:
-    """Import the rendering stack and compile every template (about 0.3 s), without
-    creating a GL context: a worker does it before it forks, so that no job pays for it."""
+    """Import the rendering stack and compile every template, without creating a GL
+    context: a worker does it before it forks, so that no job pays for it."""
     from . import render  # noqa: F401  (imports OpenGL, creates no context)
 
     env = _templates()

@@ -2,10 +2,10 @@
 
 Each job runs in a forked work-horse, so a job that crashes or is killed takes only its
 horse down; the worker reports the loss and the job is retried once or failed. The parent
-loads the default body model and runs it once on one thread, imports the report's modules
-and compiles its templates before it forks (every horse inherits them warm, so no job pays
-for loading them), and never renders (a forked child's
-OpenGL context hangs; see docs/service.md).
+loads the default body model and runs it once on one thread, imports the fit's and the
+report's modules and compiles the report's templates before it forks (every horse
+inherits them warm, so no job pays for loading them), and never renders (a forked
+child's OpenGL context hangs; see docs/service.md).
 """
 from __future__ import annotations
 

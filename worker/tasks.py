@@ -69,8 +69,8 @@ def preload() -> float:
     backwards once (which loads its compiled kernels), import the fit's modules and the
     report's rendering stack, compile the report's templates, and freeze all that out of
     the garbage collector's reach, so that a horse's full collections (pyrender runs one
-    as each report's renderer closes: 0.3-0.5 s over the loaded model) walk only what its
-    job made. Returns the seconds it took."""
+    as each report's renderer closes: 0.5 s over the loaded model, two fits running
+    beside it) walk only what its job made. Returns the seconds it took."""
     import torch
 
     import prox_engine.pipeline  # noqa: F401  (the fit's modules: OpenCV among them)
