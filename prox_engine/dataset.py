@@ -266,6 +266,7 @@ def _read_ply(path: Path, content: bytes | None) -> SceneScan | None:
     per face and hashes every array: a 290k-face scan 0.15-0.50 s against 0.02-0.09);
     None where its faces are not all triangles."""
     from trimesh.exchange.ply import load_ply
+    from trimesh.visual.color import to_rgba
 
     with (io.BytesIO(content) if content is not None else path.open("rb")) as stream:
         arrays = load_ply(stream)
@@ -273,13 +274,8 @@ def _read_ply(path: Path, content: bytes | None) -> SceneScan | None:
     if faces.ndim != 2 or faces.shape[1] != 3:
         return None
     vertices = np.asarray(arrays.get("vertices", np.zeros((0, 3))), dtype=np.float64)
-    colours = arrays.get("vertex_colors")
-    if colours is not None:
-        colours = np.asarray(colours, dtype=np.uint8)
-        if colours.shape == (len(vertices), 3):
-            colours = np.concatenate([colours, np.full((len(vertices), 1), 255, np.uint8)], 1)
-        elif colours.shape != (len(vertices), 4):
-            colours = None
+    colours = arrays.get("vertex_colors")  # RGB or RGBA: as trimesh's mesh would hold them
+    colours = to_rgba(colours) if colours is not None and len(colours) == len(vertices) else None
     return SceneScan(vertices, faces.astype(np.int64), colours)
 
 
