@@ -43,6 +43,9 @@ class FitConfig:
     scale_visibility: bool = True
     # ... and does not count the toes as penetrating (see scale_search.TOE_REACH)
     scale_free_toes: bool = True
+    # ... and searches the unseen feet of kneeling legs pointed along the shins (see
+    # scale_search.FLAT_SHIN)
+    point_unseen_feet: bool = True
     # Sequence mode keeps the anchor frame's shape, so each other frame's depth is the one
     # its keypoint stage reaches from its neighbour's. On, each frame's scale is searched
     # against the scene too, before its contact stage, which rescales the body: closer joints

@@ -19,7 +19,8 @@ from .geometry import VertexNormals, turned_onto_ray, vertex_normals
 from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, FEET, RIGHT_HAND,
                         SEEN, HIPS, SHINS, Keypoints, ankle_seen, side_swap, thighs_hidden)
 from .initialisation import best_start
-from .scale_search import best_scale, carrying_vertices, toe_vertices
+from .scale_search import (best_scale, carrying_vertices, toe_vertices,
+                           unseen_feet_on_kneeling_legs)
 from .scene import Scene
 
 
@@ -273,6 +274,8 @@ class Fitter:
                 placed = True
             if not rescaled and self._scene_stage(stage):
                 t0, before = time.perf_counter(), self.evaluations
+                if cfg.point_unseen_feet:
+                    rows.params.update(self._pointed_feet(rows.params, rows.seen))
                 scale, _ = self._scale_search(rows.params, rows.seen)
                 self._rescale(rows.params, scale, len(frames))
                 stage_seconds["scale_search"] = time.perf_counter() - t0
@@ -573,6 +576,14 @@ class Fitter:
                                  cfg.contact_max_distance, cfg.scale_support,
                                  joints if cfg.scale_visibility else None, self.toes)
         return scale, cost
+
+    def _pointed_feet(self, params: Params, seen: torch.Tensor) -> Params:
+        """``params`` with the unseen feet of kneeling legs pointed along the shins (see
+        :data:`scale_search.FLAT_SHIN`)."""
+        with torch.no_grad():
+            keypoints = self.body(params, vertices=False).keypoints[:, BODY]
+        which = unseen_feet_on_kneeling_legs(keypoints, seen, self.scene.up_in_camera())
+        return self.body.point_feet(params, which) if bool(which.any()) else params
 
     def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:
         """Per body, the scale about the camera centre that puts its camera-facing surface

@@ -18,6 +18,7 @@ from collections.abc import Callable
 
 import torch
 
+from .keypoints import HIPS, SHINS
 from .losses import contact_distances, gmof
 from .scene import Scene
 
@@ -62,6 +63,35 @@ PENETRATION_MARGIN = 0.02
 # Joints the detector clearly saw are in front of the scan: a body scaled until they are
 # behind a bed, wall or table from the camera costs this much (all of them hidden) on top.
 VISIBILITY_WEIGHT = 1.0
+
+
+# A foot the detector does not see has the pose prior's neutral ankle, its toes at right
+# angles to the shin. On a kneeling leg (the thigh within KNEELING_THIGH of straight down,
+# the shin within FLAT_SHIN of the floor) that puts the toes through the floor at the
+# true depth and, at a nearer one, under a body floating on them: the search shrank
+# kneelers toward the camera by 3-12 %. Such a foot is searched pointed along its shin,
+# as a kneeler's lies. (A lying body's legs are flat too; pointing its feet cost the bed
+# kind 4 mm.)
+FLAT_SHIN = math.radians(35)
+KNEELING_THIGH = math.radians(45)
+
+
+def unseen_feet_on_kneeling_legs(keypoints: torch.Tensor, seen: torch.Tensor,
+                                 up: torch.Tensor) -> torch.Tensor:
+    """(B, 2) bool, per leg (right, left): none of the foot's toes and heel clearly seen
+    (``seen`` (B, 25)) and the leg kneeling (see :data:`FLAT_SHIN`) in the fitted BODY_25
+    ``keypoints`` (B, 25, 3), ``up`` world up in their frame."""
+    def slope(start: list[int], end: list[int]) -> torch.Tensor:
+        """Sine of the elevation of the segments from ``start`` to ``end`` (B, 2)."""
+        segment = keypoints[:, end] - keypoints[:, start]
+        return (segment @ up) / segment.norm(dim=-1).clamp_min(1e-9)
+
+    knees = [knee for knee, _ in SHINS]
+    shin = slope(knees, [foot[0] for _, foot in SHINS])
+    thigh = slope(HIPS, knees)
+    unseen = ~torch.stack([seen[:, foot[1:]].any(1) for _, foot in SHINS], 1)
+    return (unseen & (shin.abs() < math.sin(FLAT_SHIN))
+            & (thigh < -math.cos(KNEELING_THIGH)))
 
 
 def toe_vertices(parts: list[str], rest: torch.Tensor, ankles: torch.Tensor) -> torch.Tensor:

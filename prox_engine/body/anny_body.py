@@ -57,7 +57,9 @@ _LIMITS = {
     "upperleg02": ((-0.1, -0.6, -0.1), (0.1, 0.6, 0.1)),
     "lowerleg01": ((-0.05, -0.2, -0.1), (2.6, 0.2, 0.1)),
     "lowerleg02": ((-0.1, -0.4, -0.1), (0.1, 0.4, 0.1)),
-    "foot": ((-0.8, -0.3, -0.4), (0.6, 0.3, 0.4)),
+    # Plantarflexion (+x) to 50 degrees, an adult ankle's range: a kneeler's feet lie flat
+    # along the floor behind the shins.
+    "foot": ((-0.8, -0.3, -0.4), (0.87, 0.3, 0.4)),
 }
 # COCO-23 regressor labels (anny) in BODY_25 order; neck and mid-hip are means of pairs.
 _BODY25_FROM_COCO = {
@@ -346,6 +348,13 @@ class AnnyBody(BodyModel):
                         values[SIDES.index(side)])
             variants.append({**params, "body_pose": pose})
         return variants
+
+    def point_feet(self, params: Params, which: torch.Tensor) -> Params:
+        pose = params["body_pose"].clone()
+        for side, rows in zip(("R", "L"), which.T):
+            bone = BODY_BONES.index(f"foot.{side}")
+            pose[rows, bone] = torch.stack([self.limit_hi[bone, 0], *pose.new_zeros(2)])
+        return {**params, "body_pose": pose}
 
     def root_pivot(self, params: Params) -> torch.Tensor:
         return params["transl"].new_zeros(params["transl"].shape)  # the root is the origin

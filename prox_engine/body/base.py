@@ -105,6 +105,12 @@ class BodyModel(ABC, torch.nn.Module):
         forward; none for a model whose pose is a learned latent code."""
         return []
 
+    def point_feet(self, params: Params, which: torch.Tensor) -> Params:
+        """``params`` with the feet of ``which`` ((B, 2) bool, right then left) turned to
+        full plantarflexion, toes along the shin; a model whose pose is a learned latent
+        code keeps them as they are."""
+        return params
+
     def prox_result(self, params: Params, index: int) -> dict | None:
         """The arrays of a PROX/SMPLify-X ``000.pkl`` for models that have one (SMPL-X)."""
         return None
