@@ -65,7 +65,7 @@ PENETRATION_MARGIN = 0.02
 VISIBILITY_WEIGHT = 1.0
 
 
-# A foot the detector does not see has the pose prior's neutral ankle, its toes at right
+# A foot whose toes the detector does not see has the pose prior's neutral ankle, its toes at right
 # angles to the shin. On a kneeling leg (the thigh within KNEELING_THIGH of straight down,
 # the shin within FLAT_SHIN of the floor) that puts the toes through the floor at the
 # true depth and, at a nearer one, under a body floating on them: the search shrank
@@ -78,9 +78,10 @@ KNEELING_THIGH = math.radians(45)
 
 def unseen_feet_on_kneeling_legs(keypoints: torch.Tensor, seen: torch.Tensor,
                                  up: torch.Tensor) -> torch.Tensor:
-    """(B, 2) bool, per leg (right, left): none of the foot's toes and heel clearly seen
-    (``seen`` (B, 25)) and the leg kneeling (see :data:`FLAT_SHIN`) in the fitted BODY_25
-    ``keypoints`` (B, 25, 3), ``up`` world up in their frame."""
+    """(B, 2) bool, per leg (right, left): neither of the foot's toes clearly seen
+    (``seen`` (B, 25); a seen heel does not turn the foot) and the leg kneeling (see
+    :data:`FLAT_SHIN`) in the fitted BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in
+    their frame."""
     def slope(start: list[int], end: list[int]) -> torch.Tensor:
         """Sine of the elevation of the segments from ``start`` to ``end`` (B, 2)."""
         segment = keypoints[:, end] - keypoints[:, start]
@@ -89,7 +90,8 @@ def unseen_feet_on_kneeling_legs(keypoints: torch.Tensor, seen: torch.Tensor,
     knees = [knee for knee, _ in SHINS]
     shin = slope(knees, [foot[0] for _, foot in SHINS])
     thigh = slope(HIPS, knees)
-    unseen = ~torch.stack([seen[:, foot[1:]].any(1) for _, foot in SHINS], 1)
+    toes = [foot[1:3] for _, foot in SHINS]  # a kneeler's heel points up, in view
+    unseen = ~torch.stack([seen[:, pair].any(1) for pair in toes], 1)
     return (unseen & (shin.abs() < math.sin(FLAT_SHIN))
             & (thigh < -math.cos(KNEELING_THIGH)))
 

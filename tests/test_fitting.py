@@ -984,15 +984,15 @@ def _kneeler(body) -> tuple[Scene, torch.Tensor, torch.Tensor]:
 
 
 def test_unseen_feet_are_pointed_only_on_kneeling_legs(body):
-    """Under tilted, rolled cameras: a kneeler's foot whose toes and heel the detector
-    did not see is pointed, a seen one is not; neither are a standing body's unseen feet
-    (upright shins) nor those of the same body lying on its back (flat shins, flat
-    thighs)."""
+    """Under tilted, rolled cameras: a kneeler's foot whose toes the detector did not see
+    is pointed, its heel seen or not, a seen one is not; neither are a standing body's
+    unseen feet (upright shins) nor those of the same body lying on its back (flat shins,
+    flat thighs)."""
     from prox_engine.scale_search import unseen_feet_on_kneeling_legs
 
     scene, _, kneeling = _kneeler(body)
     seen = torch.ones(1, 25, dtype=torch.bool)
-    seen[0, [19, 20, 21]] = False  # the left foot's toes and heel
+    seen[0, [19, 20]] = False  # the left foot's toes, not its heel
     pointed = unseen_feet_on_kneeling_legs(kneeling[None, :25], seen, scene.up_in_camera())
     assert pointed.tolist() == [[False, True]]
     seen[0, 19:25] = False  # both feet's
