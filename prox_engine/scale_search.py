@@ -65,13 +65,13 @@ PENETRATION_MARGIN = 0.02
 VISIBILITY_WEIGHT = 1.0
 
 
-# A foot whose toes the detector does not see has the pose prior's neutral ankle, its toes at right
-# angles to the shin. On a kneeling leg (the thigh within KNEELING_THIGH of straight down,
-# the shin within FLAT_SHIN of the floor) that puts the toes through the floor at the
-# true depth and, at a nearer one, under a body floating on them: the search shrank
-# kneelers toward the camera by 3-12 %. Such a foot is searched pointed along its shin,
-# as a kneeler's lies. (A lying body's legs are flat too; pointing its feet cost the bed
-# kind 4 mm.)
+# A foot whose toes the detector does not see has the pose prior's neutral ankle, its toes
+# at right angles to the shin. On a kneeling leg (the thigh within KNEELING_THIGH of
+# straight down, the shin within FLAT_SHIN of the floor) that puts the toes through the
+# floor at the true depth and, at a nearer one, under a body floating on them: the search
+# shrank kneelers toward the camera by 3-12 %. Such a foot is searched pointed along its
+# shin, as a kneeler's lies. (A lying body's legs are flat too; pointing its feet cost
+# the bed kind 4 mm.)
 FLAT_SHIN = math.radians(35)
 KNEELING_THIGH = math.radians(45)
 
