@@ -37,7 +37,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,
            "prox-no-refit" + SEQUENCE, "prox-no-side-refit" + SEQUENCE,
            "prox-no-floating-refit" + SEQUENCE,
-           "prox-rescaled" + SEQUENCE, "smplifyd", "proxd")
+           "prox-anchor-scale" + SEQUENCE, "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}
 COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f"),
            ("p_v2v", "p.V2V", ".1f"), ("penetrating_share", "pen. %", "pct"),

@@ -46,11 +46,11 @@ class FitConfig:
     # ... and searches the unseen feet of kneeling legs pointed along the shins (see
     # scale_search.FLAT_SHIN)
     point_unseen_feet: bool = True
-    # Sequence mode keeps the anchor frame's shape, so each other frame's depth is the one
-    # its keypoint stage reaches from its neighbour's. On, each frame's scale is searched
-    # against the scene too, before its contact stage, which rescales the body: closer joints
-    # (tuning seeds 9 and 12: PJE 155.7 -> 127.6 and 95.6 -> 85.9 mm; held-out seed 13:
-    # 200.0 -> 153.7), but a size that changes from frame to frame (`prox-rescaled`).
+    # Sequence mode warm-starts each frame from its neighbour's fit; off, the frame keeps
+    # that fit's shape, and its depth is the one its keypoint stage reaches from the
+    # neighbour's, which drifts along the camera rays frame after frame. On, each frame's
+    # scale is searched against the scene too, before its contact stage, which rescales
+    # the body: the size then changes from frame to frame, as single frames' do.
     sequence_scale_search: bool = False
     # Sequence mode fits one anchor frame from scratch and the others from their
     # neighbours, so all inherit its shape and depth: the first frame whose body keypoints'

@@ -116,7 +116,8 @@ def _sequence_fit_with(sitting_data, tmp_path, index: int, edit, *extra: str
 def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
     """The first frame is cut off below the knees: sequence mode fits the second frame,
     the one the detector saw best, from scratch, then the first warm-started from it
-    (shape kept, the temporal term on); the summary lists the frames in their order."""
+    (the temporal term on, its scale searched again); the summary lists the frames in
+    their order."""
     def hide_feet(points: list[float]) -> None:
         for k in (11, 14, 19, 20, 21, 22, 23, 24):  # ankles and feet
             points[3 * k:3 * k + 3] = [0.0, 0.0, 0.0]
@@ -128,9 +129,10 @@ def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
     first, second = (json.loads((tmp_path / "seq" / REC / "results" / name / "000.json")
                                 .read_text()) for name in names)
     assert "temporal" in first["losses"] and "temporal" not in second["losses"]
-    assert first["phenotype"] == second["phenotype"]  # shape kept from the anchor frame
-    # keypoints, then scene, then whether the fit floats (pipeline._unless_floating)
-    assert list(first["timings"]["stages"]) == ["final", "contact", "floating_check"]
+    # keypoints, the frame's scale, then scene, then whether the fit floats
+    # (pipeline._unless_floating)
+    assert list(first["timings"]["stages"]) == ["final", "scale_search", "contact",
+                                                "floating_check"]
 
 
 def test_sequence_mode_anchors_on_a_frame_labelled_as_detected(sitting_data, tmp_path):

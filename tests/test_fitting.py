@@ -816,8 +816,8 @@ def test_rescale_scales_the_body_about_the_camera(body):
 def test_sequence_mode_can_search_each_frames_scale(body):
     """Sequence mode, warm-started from a previous fit 15 % too big and too far (the same
     pixels, its soles through the floor): with ``sequence_scale_search`` each frame's scale
-    search brings the body back onto the floor; by default, with the shape kept, the depth
-    carried over from the previous frame stays."""
+    search brings the body back onto the floor (`prox`); without it, with the shape kept,
+    the depth carried over from the previous frame stays (`prox-anchor-scale`)."""
     cam2world = tilted_camera()
     scene = floor_scene(cam2world)
     params = _posed_params(body, cam2world)
@@ -840,9 +840,10 @@ def test_sequence_mode_can_search_each_frames_scale(body):
 
 def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor(body):
     """Sequence mode, warm-started from a previous fit 15 % too small and too near (the
-    same pixels, its soles 24 cm over the floor), which the frame's own stages keep: the
-    frame is fitted again from scratch, and that fit, standing on the floor, is kept; the
-    ablation keeps the floating one."""
+    same pixels, its soles 24 cm over the floor), which the frame's own stages keep (its
+    scale carried over, as `prox-anchor-scale` does): the frame is fitted again from
+    scratch, and that fit, standing on the floor, is kept; the ablation keeps the floating
+    one."""
     from prox_engine.fitting import FitResult
     from prox_engine.pipeline import _fit_from
     from prox_engine.quality import FLOATING, underside_gap
@@ -860,11 +861,13 @@ def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor
     previous = FitResult("previous", too_near, out.vertices[0], out.keypoints[0], {}, 0.0)
     assert underside_gap(previous.vertices, scene) > 0.2
 
-    def fit(config: str):
-        fitter = Fitter(body, CAMERA, load_config(config), scene)
+    def fit(name: str):
+        config = load_config(name)
+        config.sequence_scale_search = False
+        fitter = Fitter(body, CAMERA, config, scene)
         return _fit_from(fitter, frame_of(truth), previous, anchor_px=1.0)[0]
 
-    kept, ablation = fit("prox"), fit("prox-no-floating-refit")
+    kept, ablation = fit("prox-anchor-scale"), fit("prox-no-floating-refit")
     assert underside_gap(ablation.vertices, scene) > FLOATING
     assert underside_gap(kept.vertices, scene) < FLOATING
     assert any("kept the fit from scratch" in e for e in kept.events), kept.events
