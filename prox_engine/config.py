@@ -53,9 +53,10 @@ class FitConfig:
     # the body: the size then changes from frame to frame, as single frames' do.
     sequence_scale_search: bool = False
     # Sequence mode fits one anchor frame from scratch and the others from their
-    # neighbours, so all inherit its shape and depth: the first frame whose body keypoints'
-    # summed confidence is this share of the best frame's (noise moves the sums by a few
-    # per cent; a truncated, occluded or blurred frame loses 20-40). 0: the first frame.
+    # neighbours, so all start from its posture, shape and depth: the first frame whose
+    # body keypoints' summed confidence is this share of the best frame's (noise moves the
+    # sums by a few per cent; a truncated, occluded or blurred frame loses 20-40). 0: the
+    # first frame.
     anchor_seen: float = 0.9
     # Of those frames, the anchor is the first (of up to pipeline.ANCHOR_TRIES) whose start
     # keeps the detector's left and right: a frame whose sides the fit relabels, rightly or
