@@ -841,7 +841,7 @@ def test_sequence_mode_can_search_each_frames_scale(body):
 def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor(body):
     """Sequence mode, warm-started from a previous fit 15 % too small and too near (the
     same pixels, its soles 24 cm over the floor), which the frame's own stages keep (its
-    scale carried over, as `prox-anchor-scale` does): the frame is fitted again from
+    scale carried over: ``sequence_scale_search`` off): the frame is fitted again from
     scratch, and that fit, standing on the floor, is kept; the ablation keeps the floating
     one."""
     from prox_engine.fitting import FitResult
@@ -867,7 +867,7 @@ def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor
         fitter = Fitter(body, CAMERA, config, scene)
         return _fit_from(fitter, frame_of(truth), previous, anchor_px=1.0)[0]
 
-    kept, ablation = fit("prox-anchor-scale"), fit("prox-no-floating-refit")
+    kept, ablation = fit("prox"), fit("prox-no-floating-refit")
     assert underside_gap(ablation.vertices, scene) > FLOATING
     assert underside_gap(kept.vertices, scene) < FLOATING
     assert any("kept the fit from scratch" in e for e in kept.events), kept.events
