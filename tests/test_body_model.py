@@ -1,6 +1,7 @@
 """The anny backend honours the body-model interface."""
 from __future__ import annotations
 
+import pytest
 import torch
 
 from prox_engine.body.anny_body import BODY_BONES
@@ -150,19 +151,22 @@ def test_phenotype_coefficients_are_annys(body):
     torch.testing.assert_close(grad_ours[:64], grad_theirs[:64], rtol=1e-4, atol=1e-4)
 
 
-def test_forward_kinematics_are_annys(body):
+@pytest.mark.parametrize("batch", [3, 6])  # pointer jumping; level by level
+def test_forward_kinematics_are_annys(body, batch):
     """The skeleton's matrix-product chain gives anny's own bone transforms and posed bone
     poses ('local-bone'), values and gradients, for a batch of reshaped, posed bodies."""
+    from prox_engine.body.anny_kinematics import JUMP_BATCH
     from prox_engine.geometry import axis_angle_to_matrix
 
+    assert (batch <= JUMP_BATCH) == (batch == 3)
     torch.manual_seed(4)
-    params = body.init_params(3, "sitting")
+    params = body.init_params(batch, "sitting")
     for name in ("global_orient", "body_pose", "hand_pose", "transl"):
         params[name] = params[name] + torch.randn_like(params[name]) * 0.5
     params["shape"] = params["shape"] + torch.randn_like(params["shape"])
     leaves = {k: v.requires_grad_(True) for k, v in params.items()}
     rest = body._rest(leaves["shape"], vertices=False)
-    delta = torch.eye(4).repeat(3, len(body.bone_labels), 1, 1)
+    delta = torch.eye(4).repeat(batch, len(body.bone_labels), 1, 1)
     delta[:, 0, :3, :3] = axis_angle_to_matrix(leaves["global_orient"])
     delta[:, 0, :3, 3] = leaves["transl"]
     delta[:, body.body_index, :3, :3] = axis_angle_to_matrix(leaves["body_pose"])

@@ -8,12 +8,21 @@ rest pose P_c = [R_c | h_c], fixed reference orientation U_c and fitted rotation
 Its posed pose is W_c = W_p K_c with K_c = [U_p^T U_c D_c | R_p^T (h_c - h_p)] (the root's
 children: [.. | U_0^T (h_c - h_0)]), W_0 = [D_0 | transl], and its skinning transform is
 T_c = W_c P_c^-1.
+
+The chain W_c = K_0 K_1 ... K_c is composed level by level (16 rounds of one gather and
+one product over the level's bones), or, for a few bodies, by pointer jumping: each round
+multiplies every bone's product so far by that of the bone as many levels above it, so
+the 17 levels take 5 rounds over all bones. A round's cost is its dispatch for a few
+bodies (2 bodies: 2.2 -> 1.7 ms forward and backward) but its products for many (16: 3.8
+-> 4.8 ms).
 """
 from __future__ import annotations
 
 import torch
 
 from ..geometry import axis_angle_to_matrix
+
+JUMP_BATCH = 4  # pointer jumping up to this many bodies
 
 
 class AnnySkeleton(torch.nn.Module):
@@ -39,6 +48,15 @@ class AnnySkeleton(torch.nn.Module):
         self.register_buffer("root_reference", reference[0])
         self.register_buffer("bottom", torch.tensor([0.0, 0.0, 0.0, 1.0]))
         self.register_buffer("identity", torch.eye(3))  # the unposed bones' rotation
+        # Pointer jumping's rounds, in depth order: each bone's "bone above" is its parent,
+        # then the bone 2, 4, 8, ... levels up; above the root is the index ``count``, an
+        # identity matrix.
+        above = torch.cat([inverse[parent[order]], torch.tensor([count])])
+        above[0] = count
+        self.jumps = []
+        while bool((above[:count] < count).any()):
+            self.jumps.append(above)
+            above = above[above]
 
     def offsets(self, rest_poses: torch.Tensor) -> torch.Tensor:
         """(B, J, 3) each bone's head from its parent's in the parent's frame, depth order;
@@ -61,11 +79,18 @@ class AnnySkeleton(torch.nn.Module):
         offsets = offsets.expand(batch, -1, -1)
         bottom = self.bottom.expand(batch, len(self.slot), 1, 4)
         step = torch.cat([torch.cat([self.turn @ rotations, offsets[..., None]], -1), bottom], -2)
-        root = torch.cat([rotations[:, 0], transl[:, :, None]], -1)
-        chain = [torch.cat([root, bottom[:, 0]], -2)[:, None]]
-        for first, last in self.levels[1:]:
-            chain.append(chain[-1][:, self.local[first:last]] @ step[:, first:last])
-        poses = torch.cat(chain, 1)[:, self.inverse]
+        root = torch.cat([torch.cat([rotations[:, 0], transl[:, :, None]], -1), bottom[:, 0]],
+                         -2)[:, None]
+        if batch <= JUMP_BATCH:
+            poses = torch.cat([root, step[:, 1:], torch.eye(4).expand(batch, 1, 4, 4)], 1)
+            for above in self.jumps:
+                poses = poses.index_select(1, above) @ poses
+        else:
+            chain = [root]
+            for first, last in self.levels[1:]:
+                chain.append(chain[-1][:, self.local[first:last]] @ step[:, first:last])
+            poses = torch.cat(chain, 1)
+        poses = poses[:, self.inverse]
         rest_rotation, rest_head = rest_poses[..., :3, :3], rest_poses[..., :3, 3]
         rotation = poses[..., :3, :3] @ rest_rotation.transpose(-1, -2)
         shift = poses[..., :3, 3] - (rotation @ rest_head[..., None])[..., 0]
