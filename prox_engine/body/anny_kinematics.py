@@ -13,7 +13,7 @@ The chain W_c = K_0 K_1 ... K_c is composed level by level (16 rounds of one gat
 one product over the level's bones), or, for a few bodies, by pointer jumping: each round
 multiplies every bone's product so far by that of the bone as many levels above it, so
 the 17 levels take 5 rounds over all bones. A round's cost is its dispatch for a few
-bodies (2 bodies: 2.2 -> 1.7 ms forward and backward) but its products for many (16: 3.8
+bodies (2 bodies: 2.3 -> 1.8 ms forward and backward) but its products for many (16: 3.8
 -> 4.8 ms).
 """
 from __future__ import annotations
