@@ -58,6 +58,7 @@ class AnnySkeleton(torch.nn.Module):
             jumps.append(above)
             above = above[above]
         self.register_buffer("jumps", torch.stack(jumps))  # (rounds, count + 1)
+        self.register_buffer("above_root", torch.eye(4))
 
     def offsets(self, rest_poses: torch.Tensor) -> torch.Tensor:
         """(B, J, 3) each bone's head from its parent's in the parent's frame, depth order;
@@ -83,8 +84,7 @@ class AnnySkeleton(torch.nn.Module):
         root = torch.cat([torch.cat([rotations[:, 0], transl[:, :, None]], -1), bottom[:, 0]],
                          -2)[:, None]
         if batch <= JUMP_BATCH:
-            above_root = torch.eye(4, dtype=step.dtype, device=step.device)
-            poses = torch.cat([root, step[:, 1:], above_root.expand(batch, 1, 4, 4)], 1)
+            poses = torch.cat([root, step[:, 1:], self.above_root.expand(batch, 1, 4, 4)], 1)
             for above in self.jumps:
                 poses = poses.index_select(1, above) @ poses
         else:
