@@ -41,6 +41,8 @@ class FitConfig:
     scale_support: bool = True  # the scale search asks that the body rest on a surface
     # ... and that the joints the detector clearly saw be in front of the scan
     scale_visibility: bool = True
+    # ... and counts a body through a thin surface by its axis (see scale_search.AXIS_WEIGHT)
+    scale_axes: bool = True
     # ... and does not count the toes as penetrating (see scale_search.TOE_REACH)
     scale_free_toes: bool = True
     # ... and searches the unseen feet of kneeling legs pointed along the shins (see

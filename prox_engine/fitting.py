@@ -569,12 +569,13 @@ class Fitter:
             vertices = out.vertices
             normals = vertex_normals(vertices, body.faces)
         joints = [out.keypoints[b, BODY][seen[b]] for b in range(len(seen))]
+        axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
         scale, cost = best_scale(vertices, normals, body.scene_vertices, self.carrying,
                                  self.contact_part_ids,
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
                                  cfg.contact_max_distance, cfg.scale_support,
-                                 joints if cfg.scale_visibility else None, self.toes)
+                                 joints if cfg.scale_visibility else None, self.toes, axes)
         return scale, cost
 
     def _pointed_feet(self, params: Params, seen: torch.Tensor) -> Params:

@@ -63,6 +63,11 @@ PENETRATION_MARGIN = 0.02
 # Joints the detector clearly saw are in front of the scan: a body scaled until they are
 # behind a bed, wall or table from the camera costs this much (all of them hidden) on top.
 VISIBILITY_WEIGHT = 1.0
+# A body through a thin surface (a 12 cm partition behind it, a tabletop through the
+# thighs) leaves only a ring of its surface vertices inside it: its axis (the collision
+# spheres' centres, inside arms, legs and trunk) is inside. Each centre more than
+# PENETRATION_MARGIN inside counts as a PENETRATION_WEIGHT share.
+AXIS_WEIGHT = PENETRATION_WEIGHT
 
 
 # A foot whose toes the detector does not see has the pose prior's neutral ankle, its toes
@@ -122,14 +127,16 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                use_contact: bool, use_penetration: bool, rho: float, max_angle_deg: float,
                max_distance: float, use_support: bool = True,
                seen_joints: list[torch.Tensor] | None = None,
-               toes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               toes: torch.Tensor | None = None, axes: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
     the body's underside is from resting on an upward-facing surface, plus the share of
     ``seen_joints`` (per frame, (J, 3) camera frame: those the detector clearly saw) that
     are behind the scan from the camera, plus a weak prior on body size. The ``toes``
-    ((V,) bool, :func:`toe_vertices`) do not count as penetrating. ``vertices``
+    ((V,) bool, :func:`toe_vertices`) do not count as penetrating; the ``axes`` ((B, S,
+    3) points inside the body: its collision spheres' centres) do (AXIS_WEIGHT). ``vertices``
     and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
@@ -158,6 +165,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 depth = torch.relu(-signed - PENETRATION_MARGIN)
                 inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
                 cost = cost + PENETRATION_WEIGHT * inside.mean(1)
+                if axes is not None:
+                    through = scene.signed_distance(scales * axes[b]) < -PENETRATION_MARGIN
+                    cost = cost + AXIS_WEIGHT * through.float().mean(1)
             if use_contact and contact_parts:
                 points = scales * vertices[b, every_part]
                 dist, near = contact_distances(points, normals[b, every_part].expand_as(points),

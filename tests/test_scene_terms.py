@@ -480,6 +480,52 @@ def test_scale_search_keeps_the_joints_the_detector_saw_in_view(body):
     assert float(limit.min()) - 0.06 < scale <= float(limit.min()) + 0.01, (scale, limit)
 
 
+def test_scale_search_does_not_keep_a_body_through_a_board(body):
+    """A 12 cm board through a standing body's chest, narrower than the chest and thinner
+    than it is deep (a partition behind a person, fitted too far, is through the trunk
+    the same way): no surface vertex is counted inside it, only the body's axis (its collision
+    spheres' centres) is. Without them the search keeps the body there; with them it moves
+    the body off the board, in either direction along the rays."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.scale_search import PENETRATION_MARGIN, best_scale
+
+    from .test_fitting import tilted_camera
+
+    cam2world = tilted_camera()  # at (1.7, -2.4, 1.6), looking at (0.2, 0.3, 0.9)
+    with torch.no_grad():
+        out = body(body.init_params(1))
+    lift = torch.tensor([0.2, 0.3, -float(out.vertices[0, :, 2].min())])
+    chest = (out.keypoints[0, 1] + out.keypoints[0, 8]) / 2 + lift  # neck, mid-hip
+    trunk = out.spheres[0, :, :3] + lift
+    trunk = trunk[((trunk - chest)[:, [0, 2]].abs() < torch.tensor([0.1, 0.15])).all(1)]
+    chest[1] = trunk[:, 1].mean()  # the trunk's axis, whose depth the joints may not share
+    board = trimesh.creation.box([0.2, 0.12, 0.3])
+    board.apply_translation(chest.numpy())
+    board = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(board.vertices, board.faces,
+                                                              0.05))
+    scene = Scene(board.vertices, board.faces, cam2world,
+                  compute_sdf(board.vertices, board.faces, dim=96, padding=0.5),
+                  sample_spacing=0.02)
+    centre = torch.tensor(cam2world[:3, 3], dtype=torch.float32)
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    vertices = ((out.vertices[0] + lift - centre) @ rotation)[None]
+    axes = ((out.spheres[0, :, :3] + lift - centre) @ rotation)[None]
+    inside = -scene.signed_distance(vertices[:, body.scene_vertices])
+    assert float(inside.max()) < PENETRATION_MARGIN  # none counted as penetrating
+    assert float(scene.signed_distance(axes).min()) < -0.05
+
+    def search(axes):
+        return float(best_scale(vertices, vertex_normals(vertices, body.faces),
+                                body.scene_vertices, _carrying(body), [], scene, False,
+                                True, rho=0.05, max_angle_deg=45, max_distance=0.15,
+                                use_support=False, axes=axes)[0][0])
+
+    assert abs(search(None) - 1.0) < 0.01
+    scale = search(axes)
+    assert abs(scale - 1.0) > 0.01
+    assert float(scene.signed_distance(scale * axes).min()) >= -PENETRATION_MARGIN
+
+
 def test_scale_search_rests_a_tall_leaner_on_the_floor(tmp_path, body):
     """A tall person leaning on a table, fitted at the mean adult size (17 % too small, so
     too close and floating): a sole against a table leg or the thighs against the table's
