@@ -63,10 +63,10 @@ PENETRATION_MARGIN = 0.02
 # Joints the detector clearly saw are in front of the scan: a body scaled until they are
 # behind a bed, wall or table from the camera costs this much (all of them hidden) on top.
 VISIBILITY_WEIGHT = 1.0
-# A body through a thin surface (a 12 cm partition behind it, a tabletop through the
-# thighs) leaves only a ring of its surface vertices inside it: its axis (the collision
-# spheres' centres, inside arms, legs and trunk) is inside. Each centre more than
-# PENETRATION_MARGIN inside counts as a PENETRATION_WEIGHT share.
+# A body through a surface thinner than itself (an arm through a 12 cm partition, a
+# tabletop through the thighs) has only a ring of its surface vertices inside it, but its
+# axis (the collision spheres' centres, inside arms, legs and trunk) is inside. Each
+# centre more than PENETRATION_MARGIN inside counts as a share, weighted as the vertices.
 AXIS_WEIGHT = PENETRATION_WEIGHT
 
 
@@ -136,8 +136,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     ``seen_joints`` (per frame, (J, 3) camera frame: those the detector clearly saw) that
     are behind the scan from the camera, plus a weak prior on body size. The ``toes``
     ((V,) bool, :func:`toe_vertices`) do not count as penetrating; the ``axes`` ((B, S,
-    3) points inside the body: its collision spheres' centres) do (AXIS_WEIGHT). ``vertices``
-    and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
+    3), points inside the body: its collision spheres' centres) do (AXIS_WEIGHT).
+    ``vertices`` and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
     part touches, nothing enters, the body rests on a surface): how well the body can meet

@@ -482,10 +482,10 @@ def test_scale_search_keeps_the_joints_the_detector_saw_in_view(body):
 
 def test_scale_search_does_not_keep_a_body_through_a_board(body):
     """A 12 cm board through a standing body's chest, narrower than the chest and thinner
-    than it is deep (a partition behind a person, fitted too far, is through the trunk
-    the same way): no surface vertex is counted inside it, only the body's axis (its collision
-    spheres' centres) is. Without them the search keeps the body there; with them it moves
-    the body off the board, in either direction along the rays."""
+    than it is deep (as a partition goes through the arm or trunk of a person fitted too
+    far before it): no surface vertex is counted inside it, but the body's axis (its
+    collision spheres' centres) is. Without the axis the search keeps the body there;
+    with it, the search moves the body off the board (in either direction)."""
     from prox_engine.geometry import vertex_normals
     from prox_engine.scale_search import PENETRATION_MARGIN, best_scale
 
