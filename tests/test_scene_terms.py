@@ -401,6 +401,41 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     assert abs(float(scale) - 1.0) < 0.02
 
 
+def test_scale_search_keeps_a_seated_body_before_a_sofa_back(body):
+    """A correctly placed seated body (buttocks on the seat, feet on the floor) with the
+    sofa's back 20 cm behind its own keeps its scale within 2 %: moving it back would
+    touch the sofa back but lift it off the seat and sink its feet."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.scale_search import best_scale
+
+    from .test_fitting import tilted_camera
+
+    with torch.no_grad():
+        world = body(body.init_params(1, "sitting")).vertices[0]  # faces -y
+    world = world - torch.tensor([0.0, 0.0, float(world[:, 2].min())])  # feet on the floor
+    gluteus = world[body.contact_parts["gluteus"]]
+    thighs = world[body.contact_parts["thighs"]]
+    seat_top = float(gluteus[:, 2].min())
+    back = float(world[body.scene_vertices, 1].max())
+    front = float(thighs[:, 1].min()) + 0.1  # the seat ends under the thighs
+    seat = trimesh.creation.box([1.2, back + 0.2 - front, seat_top])
+    seat.apply_translation([0.0, (back + 0.2 + front) / 2, seat_top / 2])
+    sofa_back = trimesh.creation.box([1.2, 0.2, 0.6])
+    sofa_back.apply_translation([0.0, back + 0.3, seat_top + 0.3])
+    room = trimesh.util.concatenate([plane_mesh(size=6.0), seat, sofa_back])
+    room = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(room.vertices, room.faces, 0.1))
+    cam2world = tilted_camera(position=(1.2, -2.8, 1.4), target=(0.0, 0.0, 0.6))
+    scene = Scene(room.vertices, room.faces, cam2world,
+                  compute_sdf(room.vertices, room.faces, dim=128, padding=0.5),
+                  sample_spacing=0.05)
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    camera = ((world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation)[None]
+    scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
+                          _carrying(body), list(body.contact_parts.values()), scene, True,
+                          True, rho=0.05, max_angle_deg=45, max_distance=0.15)
+    assert abs(float(scale) - 1.0) < 0.02
+
+
 def test_scale_search_keeps_a_body_whose_toes_point_into_the_floor(body):
     """A correctly placed standing body whose feet are fitted pointing down (as a
     kneeler's often are), the toes 10 cm into the floor: the scene stages bend a foot
