@@ -21,9 +21,22 @@ def _carrying(body) -> torch.Tensor:
     return carrying_vertices(body.contact_parts, body.num_vertices)
 
 
+def _seen_scene(mesh, cam2world: np.ndarray, dim: int, spacing: float = 0.05) -> Scene:
+    """The scan ``mesh`` (world frame) as seen by the camera at ``cam2world``."""
+    return Scene(mesh.vertices, mesh.faces, cam2world,
+                 compute_sdf(mesh.vertices, mesh.faces, dim=dim, padding=0.5),
+                 sample_spacing=spacing)
+
+
+def _in_camera(points: torch.Tensor, cam2world: np.ndarray) -> torch.Tensor:
+    """World points (..., 3) in the frame of the camera at ``cam2world``."""
+    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
+    return (points - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation
+
+
 def _scene(mesh, dim=64) -> Scene:
-    sdf = compute_sdf(mesh.vertices, mesh.faces, dim=dim, padding=0.5)
-    return Scene(mesh.vertices, mesh.faces, np.eye(4), sdf, sample_spacing=0.05)
+    """The scan ``mesh`` with the camera frame the world's."""
+    return _seen_scene(mesh, np.eye(4), dim)
 
 
 def test_sdf_sign_and_distance_on_closed_box():
@@ -167,14 +180,11 @@ def test_penetration_depth_skips_the_exact_query_only_where_nothing_can_be_insid
     box.apply_translation([0.3, 1.4, 0.1])
     mesh = trimesh.util.concatenate([slab, box])
     cam2world = look_at(np.array([0.7, -2.5, 1.3]), np.array([0.1, 0.2, 0.0]))
-    scene = Scene(mesh.vertices, mesh.faces, cam2world,
-                  compute_sdf(mesh.vertices, mesh.faces, dim=40, padding=0.5),
-                  sample_spacing=0.02)
+    scene = _seen_scene(mesh, cam2world, dim=40, spacing=0.02)
     voxel = scene.sdf.voxel_size
     world = torch.from_numpy(mesh.sample(4000, seed=0)).float()
     world = world + torch.randn(len(world), 3, generator=torch.Generator().manual_seed(0)) * voxel
-    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
-    camera = (world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation
+    camera = _in_camera(world, cam2world)
     grid = scene.signed_distance(camera)
     near = grid.abs() < 2 * voxel
     exact, _ = scene._triangle_distance(scene.to_world(camera))  # as the term reads them
@@ -349,14 +359,11 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
 
     floor = plane_mesh(size=10.0)
     cam2world = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 1.0], [0, 0, 0, 1]])
-    scene = Scene(floor.vertices, floor.faces, cam2world,
-                  compute_sdf(floor.vertices, floor.faces, dim=96, padding=0.5),
-                  sample_spacing=0.05)
+    scene = _seen_scene(floor, cam2world, dim=96)
     with torch.no_grad():
         world = body(body.init_params(1)).vertices[0]
     world = world + torch.tensor([0.0, 3.0, 0.0]) - torch.tensor([0, 0, world[:, 2].min()])
-    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
-    camera = (world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation
+    camera = _in_camera(world, cam2world)
     far = 1.2 * camera[None]
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand")]
     scale, cost_far = best_scale(far, vertex_normals(far, body.faces), body.scene_vertices,
@@ -389,11 +396,8 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     # A tilted camera 3 m in front of the person, 1.5 m high, looking at the chest.
     from prox_engine.synthetic import look_at
     cam2world = look_at(np.array([0.8, -3.0, 1.5]), np.array([0.0, 0.0, 1.0]))
-    scene = Scene(room.vertices, room.faces, cam2world,
-                  compute_sdf(room.vertices, room.faces, dim=128, padding=0.5),
-                  sample_spacing=0.05)
-    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
-    camera = ((world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation)[None]
+    scene = _seen_scene(room, cam2world, dim=128)
+    camera = _in_camera(world, cam2world)[None]
     parts = [body.contact_parts[p] for p in body.contact_parts]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
                           _carrying(body), parts, scene, True, True,
@@ -425,11 +429,8 @@ def test_scale_search_keeps_a_seated_body_before_a_sofa_back(body):
     room = trimesh.util.concatenate([plane_mesh(size=6.0), seat, sofa_back])
     room = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(room.vertices, room.faces, 0.1))
     cam2world = tilted_camera(position=(1.2, -2.8, 1.4), target=(0.0, 0.0, 0.6))
-    scene = Scene(room.vertices, room.faces, cam2world,
-                  compute_sdf(room.vertices, room.faces, dim=128, padding=0.5),
-                  sample_spacing=0.05)
-    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
-    camera = ((world - torch.tensor(cam2world[:3, 3], dtype=torch.float32)) @ rotation)[None]
+    scene = _seen_scene(room, cam2world, dim=128)
+    camera = _in_camera(world, cam2world)[None]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
                           _carrying(body), list(body.contact_parts.values()), scene, True,
                           True, rho=0.05, max_angle_deg=45, max_distance=0.15)
@@ -457,12 +458,8 @@ def test_scale_search_keeps_a_body_whose_toes_point_into_the_floor(body):
     assert float((pointed + lift)[:, 2].min()) < -0.08  # the toes are through the floor
     floor = plane_mesh(size=10.0)
     cam2world = look_at(np.array([0.6, -3.0, 1.4]), np.array([0.1, 0.0, 0.8]))
-    scene = Scene(floor.vertices, floor.faces, cam2world,
-                  compute_sdf(floor.vertices, floor.faces, dim=96, padding=0.5),
-                  sample_spacing=0.05)
-    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
-    camera = ((pointed + lift - torch.tensor(cam2world[:3, 3], dtype=torch.float32))
-              @ rotation)[None]
+    scene = _seen_scene(floor, cam2world, dim=96)
+    camera = _in_camera(pointed + lift, cam2world)[None]
     toes = toe_vertices(body.vertex_parts, rest.vertices[0], rest.keypoints[0, ANKLES])
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot")]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
@@ -489,13 +486,11 @@ def test_scale_search_keeps_the_joints_the_detector_saw_in_view(body):
     wall = trimesh.creation.box([8.0, 0.1, 4.0])  # front face at y = -0.2
     wall.apply_translation([0.0, -0.15, 1.0])
     wall = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(wall.vertices, wall.faces, 0.3))
-    scene = Scene(wall.vertices, wall.faces, cam2world,
-                  compute_sdf(wall.vertices, wall.faces, dim=128, padding=0.5),
-                  sample_spacing=0.05)
+    scene = _seen_scene(wall, cam2world, dim=128)
     centre = torch.tensor(cam2world[:3, 3], dtype=torch.float32)
     rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
-    vertices = ((out.vertices[0] + lift - centre) @ rotation)[None]
-    joints = (out.keypoints[0, :25] + lift - centre) @ rotation
+    vertices = _in_camera(out.vertices[0] + lift, cam2world)[None]
+    joints = _in_camera(out.keypoints[0, :25] + lift, cam2world)
     seen = joints[[1, 2, 5, 8, 9, 12]]  # neck, shoulders, hips
     # Where each seen joint's ray meets the wall's front face, as a scale of the joint.
     world_rays = seen @ rotation.T
@@ -538,13 +533,9 @@ def test_scale_search_does_not_keep_a_body_through_a_board(body):
     board.apply_translation(chest.numpy())
     board = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(board.vertices, board.faces,
                                                               0.05))
-    scene = Scene(board.vertices, board.faces, cam2world,
-                  compute_sdf(board.vertices, board.faces, dim=96, padding=0.5),
-                  sample_spacing=0.02)
-    centre = torch.tensor(cam2world[:3, 3], dtype=torch.float32)
-    rotation = torch.tensor(cam2world[:3, :3], dtype=torch.float32)
-    vertices = ((out.vertices[0] + lift - centre) @ rotation)[None]
-    axes = ((out.spheres[0, :, :3] + lift - centre) @ rotation)[None]
+    scene = _seen_scene(board, cam2world, dim=96, spacing=0.02)
+    vertices = _in_camera(out.vertices[0] + lift, cam2world)[None]
+    axes = _in_camera(out.spheres[0, :, :3] + lift, cam2world)[None]
     inside = -scene.signed_distance(vertices[:, body.scene_vertices])
     assert float(inside.max()) < PENETRATION_MARGIN  # none counted as penetrating
     assert float(scene.signed_distance(axes).min()) < -0.05
@@ -611,10 +602,8 @@ def test_scale_search_does_not_stand_a_body_on_its_hands(body):
         shelf.apply_translation([tip[0], tip[1], tip[2] - 0.015 - 0.003])
         shelves.append(shelf)
     room = trimesh.util.concatenate([plane_mesh(size=10.0), *shelves])
-    scene = Scene(room.vertices, room.faces, cam2world,
-                  compute_sdf(room.vertices, room.faces, dim=128, padding=0.5),
-                  sample_spacing=0.02)
-    camera = ((near - centre) @ torch.tensor(cam2world[:3, :3], dtype=torch.float32))[None]
+    scene = _seen_scene(room, cam2world, dim=128, spacing=0.02)
+    camera = _in_camera(near, cam2world)[None]
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot", "left_hand",
                                              "right_hand")]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
