@@ -128,7 +128,8 @@ class FitConfig:
     hip_restarts: bool = False
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the
-    # keypoints clearly better (pipeline.RESTART_DATA).
+    # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose
+    # underside is the legs' guessed posture (pipeline._fit_fresh).
     floating_restart: bool = False
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles

@@ -17,7 +17,7 @@ from prox_engine.body.base import BodyOutput
 from prox_engine.camera import Camera
 from prox_engine.config import FitConfig, Stage, load_config
 from prox_engine.fitting import Fitter, Frame
-from prox_engine.keypoints import N_KEYPOINTS, Keypoints
+from prox_engine.keypoints import FEET, N_KEYPOINTS, Keypoints
 from prox_engine.scene import Scene
 from prox_engine.scene_sdf import compute_sdf
 from prox_engine.synthetic import look_at
@@ -356,12 +356,11 @@ def test_a_fit_can_go_on_from_either_start(body):
         assert near[taken] < near[1 - taken], (taken, near)
 
 
-def test_a_floating_fit_is_fitted_again_from_its_other_start(body):
-    """A person seen where the scan has nothing under them (its only surface a patch of
-    floor 3 m away) floats whatever its start: the frame is fitted again from its other
-    start, whose fit would be kept only if it floated less (here a tie: the first is
-    kept) and fit the keypoints clearly better; an event says so, and the discarded
-    fit's cost is charged to the kept one. The ablation fits once."""
+def _fit_over_nothing(body, config: str, cut_at_knees: bool = False):
+    """A standing person fitted from scratch (pipeline._fit_fresh, with ``config``) where
+    the scan has nothing under them (its only surface a patch of floor 3 m away), so the
+    fit floats whatever its start; ``cut_at_knees``: the detector sees nothing below the
+    knees (ankles, toes and heels unreported)."""
     from prox_engine.pipeline import _fit_fresh
 
     cam2world = tilted_camera()
@@ -371,16 +370,32 @@ def test_a_floating_fit_is_fitted_again_from_its_other_start(body):
                   compute_sdf(patch.vertices, patch.faces, dim=48, padding=0.5),
                   sample_spacing=0.1)
     frame = frame_of(standing_person(body, cam2world)[1])
+    if cut_at_knees:
+        frame.keypoints.data[FEET, 2] = 0.0
+    return _fit_fresh(Fitter(body, CAMERA, load_config(config), scene), [frame])[0]
 
-    def fit(config: str):
-        return _fit_fresh(Fitter(body, CAMERA, load_config(config), scene), [frame])[0]
 
-    kept, once = fit("prox"), fit("prox-no-floating-restart")
+def test_a_floating_fit_is_fitted_again_from_its_other_start(body):
+    """A fit floating over every surface: the frame is fitted again from its other start,
+    whose fit would be kept only if it floated less (here a tie: the first is kept) and
+    fit the keypoints clearly better; an event says so, and the discarded fit's cost is
+    charged to the kept one. The ablation fits once."""
+    kept = _fit_over_nothing(body, "prox")
+    once = _fit_over_nothing(body, "prox-no-floating-restart")
     assert kept.start is not None and math.isinf(kept.underside_gap)
     assert any("from the other start" in e and "kept the first" in e for e in kept.events)
     assert kept.stage_evaluations["discarded_fit"] > 0
     assert "discarded_fit" not in once.stage_evaluations
     assert not any("other start" in e for e in once.events)
+
+
+def test_a_floating_fit_cut_off_at_the_knees_is_not_fitted_again(body):
+    """Where the detector saw no ankle, a floating fit's underside is its guessed legs:
+    the frame, which had two starts, is not fitted again from the other."""
+    fit = _fit_over_nothing(body, "prox", cut_at_knees=True)
+    assert fit.start is not None
+    assert not any("other start" in e for e in fit.events)
+    assert "discarded_fit" not in fit.stage_evaluations
 
 
 def test_body_evaluations_are_counted_per_stage_and_frame(body):
