@@ -126,6 +126,9 @@ class FitConfig:
     # ... and where the knee is not clearly seen, the whole leg turned about the hip onto
     # the ankle's other point at its distance from the hip, each leg and both together.
     hip_restarts: bool = False
+    # ... and each knee the fit misses by more than fitting.KNEE_MISS px, turned about its
+    # hip-ankle axis to where it projects nearest the detector's knee.
+    knee_restarts: bool = False
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the
     # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose

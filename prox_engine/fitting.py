@@ -30,6 +30,14 @@ from .scene import Scene
 MIRROR_MIN = 0.1
 MIRROR_ITERATIONS = 20
 MIRROR_REACH = 0.05
+# Knee restarts (FitConfig.knee_restarts): a leg whose knee the fit misses by more than
+# this (px) is also restarted posed onto its knee's and ankle's camera rays.
+KNEE_MISS = 50.0
+KNEE_SLACK = 1.2  # a ray farther than the limb's length (keypoints are not joints)
+# ... and that pose, made of detected keypoints (a few centimetres off the joints) with
+# the foot carried along, may be missed by this much (m): the stage after the restart
+# fits it (seed 49's kneeler, its pose missed by 14 cm: 253 -> 69 mm).
+KNEE_REACH = 0.2
 
 # What the scene stages may add to a frame's data term (robust px^2) besides multiplying
 # it by FitConfig.scene_data_guard: bending a standing body seen exactly out of a floor
@@ -404,22 +412,28 @@ class Fitter:
         alike tucked back with the foot in the air, or down to the floor) and, with
         ``hip_restarts`` where the knee is not clearly seen, the whole leg about the hip,
         then both legs so (a seated person's thighs hidden under a table point toward the
-        camera or hang down alike). With each, which rows are restarts worth trying
-        ((rows,) bool): those whose ankle the detector clearly saw, moves by at least
-        MIRROR_MIN and could be posed there within MIRROR_REACH (a straight leg would bend
-        forward); none for a turn without such a row."""
+        camera or hang down alike); with ``knee_restarts``, per leg, the leg posed onto its
+        knee's and ankle's camera rays (:meth:`_legs_onto_rays`). With
+        each, which rows are restarts worth trying ((rows,) bool): those whose ankle the
+        detector clearly saw (for the knee turn, whose knee it reported), where the
+        first point turned moves by at least MIRROR_MIN and could be posed there within
+        MIRROR_REACH (a straight leg would bend forward; KNEE_REACH for the knee's); none
+        for a turn without such a row."""
         body = self.body
         with torch.no_grad():
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
-        goals, useful = [], []
+        goals, useful, reach = [], [], []
+
+        def add(chain: list[int], moved: torch.Tensor, worth: torch.Tensor,
+                within: float = MIRROR_REACH) -> None:
+            useful.append(worth & ((moved[:, 0] - kp[:, chain[0]]).norm(dim=-1) >= MIRROR_MIN))
+            reach.append(within)
+            goal = kp.clone()
+            goal[:, chain] = torch.where(useful[-1][:, None, None], moved, kp[:, chain])
+            goals.append(goal)
 
         def add_turn(pivot: int, chain: list[int], worth: torch.Tensor) -> None:
-            turned = turned_onto_ray(kp[:, pivot], kp[:, chain])
-            moves = (turned[:, 0] - kp[:, chain[0]]).norm(dim=-1) >= MIRROR_MIN
-            useful.append(worth & moves)
-            goal = kp.clone()
-            goal[:, chain] = torch.where(useful[-1][:, None, None], turned, kp[:, chain])
-            goals.append(goal)
+            add(chain, turned_onto_ray(kp[:, pivot], kp[:, chain]), worth)
 
         both, both_useful = kp.clone(), torch.ones(len(kp), dtype=torch.bool)
         for hip, (knee, foot) in zip(HIPS, SHINS):
@@ -430,9 +444,13 @@ class Fitter:
                 add_turn(hip, leg, seen & (rows.conf[:, knee] <= SEEN))
                 both[:, leg] = goals[-1][:, leg]
                 both_useful &= useful[-1]
+            if self.config.knee_restarts:
+                for moved, worth in self._legs_onto_rays(kp, rows, hip, knee, foot):
+                    add([knee, *foot], moved, worth, KNEE_REACH)
         if self.config.hip_restarts:
             goals.append(both)
             useful.append(both_useful)
+            reach.append(MIRROR_REACH)
         turns = [i for i, u in enumerate(useful) if u.any()]
         if not turns:
             return []
@@ -453,11 +471,49 @@ class Fitter:
         restarts = []
         for n, index in enumerate(turns):
             rows_of_turn = slice(n * count, (n + 1) * count)
-            tried = useful[index] & (missed[rows_of_turn].max(1).values < MIRROR_REACH)
+            tried = useful[index] & (missed[rows_of_turn].max(1).values < reach[index])
             if bool(tried.any()):
                 restarts.append(({k: v[rows_of_turn].detach().clone()
                                   for k, v in params.items()}, tried))
         return restarts
+
+    def _legs_onto_rays(self, kp: torch.Tensor, rows: _Rows, hip: int, knee: int,
+                        foot: list[int]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Where the fit misses a leg's knee by more than KNEE_MISS px (the detector
+        reported the knee and the ankle), the leg posed onto their camera rays from the
+        hip, thigh and shin lengths kept: the knee at either point of its ray at the
+        thigh's length from the hip, the ankle at either point of its ray at the shin's
+        length from that knee, the foot carried along. Per such pose, the knee, ankle and
+        foot (rows, 2 + feet, 3) and which rows are worth a restart ((rows,) bool). A
+        kneeler's knee seen at low confidence otherwise stayed raised in front, the shin
+        folded back to an ankle in the air, the keypoint's pull saturated."""
+        ankle = foot[0]
+        hips, knees_at, ankles_at = kp[:, hip], kp[:, knee], kp[:, ankle]
+
+        def on_ray(pixel: torch.Tensor, centre: torch.Tensor, length: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+            ray = self.camera.backproject(pixel[:, 0], pixel[:, 1], torch.ones(len(pixel)))
+            ray = ray / ray.norm(dim=-1, keepdim=True)
+            along = (ray * centre).sum(-1)
+            square = along ** 2 - (centre ** 2).sum(-1) + length ** 2
+            root = square.clamp_min(0).sqrt()
+            points = torch.stack([along - root, along + root], 1)[..., None] * ray[:, None]
+            # a ray passing within KNEE_SLACK lengths takes its nearest point, once
+            near = square >= (1 - KNEE_SLACK ** 2) * length ** 2
+            return points, torch.stack([near, square > 0], 1)
+
+        miss = (self.camera.project(knees_at) - rows.target[:, knee]).norm(dim=-1)
+        knees, reach = on_ray(rows.target[:, knee], hips, (knees_at - hips).norm(dim=-1))
+        worth = (rows.conf[:, knee] > 0) & (rows.conf[:, ankle] > 0) & (miss > KNEE_MISS)
+        poses = []
+        for k in range(2):
+            ankles, reaches = on_ray(rows.target[:, ankle], knees[:, k],
+                                     (ankles_at - knees_at).norm(dim=-1))
+            for a in range(2):
+                feet = kp[:, foot[1:]] + (ankles[:, a] - ankles_at)[:, None]
+                poses.append((torch.cat([knees[:, k, None], ankles[:, a, None], feet], 1),
+                              worth & reach[:, k] & reaches[:, a]))
+        return poses
 
     def _announce(self, stage: str) -> None:
         if self.on_stage is not None:

@@ -688,6 +688,52 @@ def test_leg_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     assert len(fitter._leg_restarts(rows)) == 2
 
 
+def test_knee_restarts_pose_a_missed_leg_onto_its_knee_and_ankle_rays(body):
+    """A seated body under a tilted, rolled, off-centre camera whose right knee the
+    detector sees elsewhere: where the leg's plane is turned 60 degrees about its
+    hip-ankle axis. One of the leg's restarts puts the knee there (within 5 cm) with the
+    ankle still where it projected, and the trunk and other leg stay put. Without the
+    knee restarts, or with the knee fitted where seen, only the shins are restarted."""
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import SHINS
+
+    cam2world = tilted_camera()
+    params = _posed_params(body, cam2world, "sitting")
+    with torch.no_grad():
+        before = body(params, vertices=False).keypoints[0, :25]
+    hip, (knee, foot) = 9, SHINS[0]
+    axis = (before[foot[0]] - before[hip]).numpy()
+    turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * math.radians(60.0))
+    seen_knee = before[hip] + torch.tensor(turn.apply((before[knee] - before[hip]).numpy()),
+                                           dtype=torch.float32)
+    target = CAMERA.project(before)
+    target[knee] = CAMERA.project(seen_knee)
+    assert float((target[knee] - CAMERA.project(before[knee])).norm()) > 50
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    rows = _Rows(params, target[None], conf, conf[:, :25] > 0.5, [None], [()])
+    config = load_config("prox")
+    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    restarts = fitter._leg_restarts(rows)
+    assert restarts
+
+    def after(variant: dict) -> torch.Tensor:
+        with torch.no_grad():
+            return body(variant, vertices=False).keypoints[0, :25]
+
+    best = min((after(v) for v, _ in restarts),
+               key=lambda k: float((k[knee] - seen_knee).norm()))
+    assert float((best[knee] - seen_knee).norm()) < 0.05
+    assert float((CAMERA.project(best[foot[0]]) - target[foot[0]]).norm()) < 10.0
+    held = [0, 1, 2, 5, 8, 12, *SHINS[1][1], SHINS[1][0]]
+    assert float((best[held] - before[held]).norm(dim=1).max()) < 0.02
+    config.knee_restarts = False
+    shins_only = len(fitter._leg_restarts(rows))  # the seen shins' turns
+    assert len(restarts) > shins_only
+    config.knee_restarts = True
+    rows.target[0, knee] = CAMERA.project(before[knee])
+    assert len(fitter._leg_restarts(rows)) == shins_only
+
+
 def test_only_the_restarts_tried_compete_for_a_frame(body):
     """Frames fitted together share their rows' layout, so a frame none of whose legs is
     worth restarting carries copies of its body: those never win, even on a lower
