@@ -25,11 +25,12 @@ from .generate import KINDS, make_benchmark
 
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
-           "prox-no-support", "prox-no-visibility", "prox-toes-counted", "prox-unpointed-feet",
-           "prox-one-start",
+           "prox-no-support", "prox-no-visibility", "prox-no-axes", "prox-toes-counted",
+           "prox-unpointed-feet", "prox-one-start",
            "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",
            "prox-thighs-by-ankles", "prox-start-feet",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-hip-restarts",
+           "prox-no-knee-restarts",
            "prox-no-facing", "prox-no-upright", "prox-scene-translates", "prox-no-scene-guard",
            "prox-no-floating-restart",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",

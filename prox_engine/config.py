@@ -126,8 +126,8 @@ class FitConfig:
     # ... and where the knee is not clearly seen, the whole leg turned about the hip onto
     # the ankle's other point at its distance from the hip, each leg and both together.
     hip_restarts: bool = False
-    # ... and each knee the fit misses by more than fitting.KNEE_MISS px, turned about its
-    # hip-ankle axis to where it projects nearest the detector's knee.
+    # ... and each leg whose knee the fit misses by more than fitting.KNEE_MISS px posed
+    # onto its knee's and ankle's camera rays from the hip (Fitter._legs_onto_rays).
     knee_restarts: bool = False
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the

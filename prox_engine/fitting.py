@@ -36,7 +36,7 @@ KNEE_MISS = 50.0
 KNEE_SLACK = 1.2  # a ray farther than the limb's length (keypoints are not joints)
 # ... and that pose, made of detected keypoints (a few centimetres off the joints) with
 # the foot carried along, may be missed by this much (m): the stage after the restart
-# fits it (seed 49's kneeler, its pose missed by 14 cm: 253 -> 69 mm).
+# fits it (seed 49's kneeler, its pose missed by 14 cm: 253 -> 67 mm).
 KNEE_REACH = 0.2
 
 # What the scene stages may add to a frame's data term (robust px^2) besides multiplying
@@ -413,12 +413,12 @@ class Fitter:
         ``hip_restarts`` where the knee is not clearly seen, the whole leg about the hip,
         then both legs so (a seated person's thighs hidden under a table point toward the
         camera or hang down alike); with ``knee_restarts``, per leg, the leg posed onto its
-        knee's and ankle's camera rays (:meth:`_legs_onto_rays`). With
-        each, which rows are restarts worth trying ((rows,) bool): those whose ankle the
-        detector clearly saw (for the knee turn, whose knee it reported), where the
-        first point turned moves by at least MIRROR_MIN and could be posed there within
-        MIRROR_REACH (a straight leg would bend forward; KNEE_REACH for the knee's); none
-        for a turn without such a row."""
+        knee's and ankle's camera rays (:meth:`_legs_onto_rays`). With each, which rows
+        are restarts worth trying ((rows,) bool): those whose ankle the detector clearly
+        saw (for the rays, whose knee the fit misses), whose first point moved moves by at
+        least MIRROR_MIN and could be posed there within MIRROR_REACH (a straight leg
+        would bend forward; KNEE_REACH on the rays); none for a turn without such a
+        row."""
         body = self.body
         with torch.no_grad():
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
