@@ -15,7 +15,7 @@ from . import lbfgs, losses
 from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
-from .geometry import VertexNormals, turned_onto_ray, vertex_normals
+from .geometry import VertexNormals, ray_points_at, turned_onto_ray, vertex_normals
 from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, FEET, RIGHT_HAND,
                         SEEN, HIPS, SHINS, Keypoints, ankle_seen, side_swap, thighs_hidden)
 from .initialisation import best_start
@@ -33,7 +33,7 @@ MIRROR_REACH = 0.05
 # Knee restarts (FitConfig.knee_restarts): a leg whose knee the fit misses by more than
 # this (px) is also restarted posed onto its knee's and ankle's camera rays.
 KNEE_MISS = 50.0
-KNEE_SLACK = 1.2  # a ray farther than the limb's length (keypoints are not joints)
+KNEE_SLACK = 1.2  # a ray may pass this many limb lengths away (geometry.ray_points_at)
 # ... and that pose, made of detected keypoints (a few centimetres off the joints) with
 # the foot carried along, may be missed by this much (m): the stage after the restart
 # fits it (seed 49's kneeler, its pose missed by 14 cm: 253 -> 67 mm).
@@ -489,31 +489,25 @@ class Fitter:
         folded back to an ankle in the air, the keypoint's pull saturated."""
         ankle = foot[0]
         hips, knees_at, ankles_at = kp[:, hip], kp[:, knee], kp[:, ankle]
-
-        def on_ray(pixel: torch.Tensor, centre: torch.Tensor, length: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-            ray = self.camera.backproject(pixel[:, 0], pixel[:, 1], torch.ones(len(pixel)))
-            ray = ray / ray.norm(dim=-1, keepdim=True)
-            along = (ray * centre).sum(-1)
-            square = along ** 2 - (centre ** 2).sum(-1) + length ** 2
-            root = square.clamp_min(0).sqrt()
-            points = torch.stack([along - root, along + root], 1)[..., None] * ray[:, None]
-            # a ray passing within KNEE_SLACK lengths takes its nearest point, once
-            near = square >= (1 - KNEE_SLACK ** 2) * length ** 2
-            return points, torch.stack([near, square > 0], 1)
-
+        knee_ray, ankle_ray = (self._ray(rows.target[:, joint]) for joint in (knee, ankle))
         miss = (self.camera.project(knees_at) - rows.target[:, knee]).norm(dim=-1)
-        knees, reach = on_ray(rows.target[:, knee], hips, (knees_at - hips).norm(dim=-1))
+        knees, reach = ray_points_at(knee_ray, hips, (knees_at - hips).norm(dim=-1),
+                                     KNEE_SLACK)
         worth = (rows.conf[:, knee] > 0) & (rows.conf[:, ankle] > 0) & (miss > KNEE_MISS)
         poses = []
         for k in range(2):
-            ankles, reaches = on_ray(rows.target[:, ankle], knees[:, k],
-                                     (ankles_at - knees_at).norm(dim=-1))
+            ankles, reaches = ray_points_at(ankle_ray, knees[:, k],
+                                            (ankles_at - knees_at).norm(dim=-1), KNEE_SLACK)
             for a in range(2):
                 feet = kp[:, foot[1:]] + (ankles[:, a] - ankles_at)[:, None]
                 poses.append((torch.cat([knees[:, k, None], ankles[:, a, None], feet], 1),
                               worth & reach[:, k] & reaches[:, a]))
         return poses
+
+    def _ray(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Unit camera rays (N, 3) through ``pixels`` (N, 2)."""
+        ray = self.camera.backproject(pixels[:, 0], pixels[:, 1], torch.ones(len(pixels)))
+        return ray / ray.norm(dim=-1, keepdim=True)
 
     def _announce(self, stage: str) -> None:
         if self.on_stage is not None:

@@ -141,6 +141,21 @@ def turned_onto_ray(pivot: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return pivot[..., None, :] + (points - pivot[..., None, :]) @ turn.transpose(-1, -2)
 
 
+def ray_points_at(ray: torch.Tensor, centre: torch.Tensor, length: torch.Tensor,
+                  slack: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two points (..., 2, 3), nearer first, of the unit ``ray`` (..., 3) from the
+    camera centre at ``length`` (...,) from ``centre`` (..., 3), and whether each is one
+    ((..., 2) bool). A ray that passes the sphere within ``slack`` lengths of its centre
+    gives its nearest point as the first (keypoints are not joints: a limb's length
+    between two of them is a little off); the second is one only where the ray meets
+    the sphere twice."""
+    along = (ray * centre).sum(-1)
+    square = along ** 2 - (centre ** 2).sum(-1) + length ** 2
+    root = square.clamp_min(0).sqrt()
+    points = torch.stack([along - root, along + root], -1)[..., None] * ray[..., None, :]
+    return points, torch.stack([square >= (1 - slack ** 2) * length ** 2, square > 0], -1)
+
+
 def matrix_to_axis_angle(r: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`axis_angle_to_matrix` (roma's, differentiable away from pi)."""
     import roma
