@@ -241,7 +241,24 @@ class AnnyBody(BodyModel):
         self.register_buffer("hand_heads", torch.tensor(
             [self.bone_labels.index(b) for b in hand_bones]))
         self.register_buffer("fingertips", torch.tensor(tips))
+        self._setup_keypoint_source()
         self._setup_spheres(vertices, poses, bone_of)
+
+    def _setup_keypoint_source(self) -> None:
+        """Where each of the N_KEYPOINTS keypoints comes from in the row of points the
+        forward pass gathers them from: the body keypoints, the fingertips, the hand bones'
+        heads (:attr:`hand_heads`), and a zero for the face."""
+        body, tips = len(self.keypoint_weights), len(self.fingertips)
+        heads = body + tips
+        source = torch.full((N_KEYPOINTS,), heads + len(self.hand_heads))  # the zero
+        source[BODY] = torch.arange(body)
+        for side, slot in enumerate((LEFT_HAND, RIGHT_HAND)):
+            hand = [heads + side * 16]  # the wrist, then each finger's 3 heads and its tip
+            for finger in range(5):
+                hand += [heads + side * 16 + 1 + 3 * finger + k for k in range(3)]
+                hand.append(body + side * 5 + finger)
+            source[slot] = torch.tensor(hand)
+        self.register_buffer("keypoint_source", source)
 
     def _label_parts(self, parts: np.ndarray, bone_of: np.ndarray) -> None:
         from anny.face_segmentation import get_face_segmentation_mask
@@ -514,18 +531,10 @@ class AnnyBody(BodyModel):
         anchor = transforms[:, self.anchor_bone, :3]  # (B, pairs, 3, 4)
         moved = ((anchor[..., :3] @ rest["anchors"].expand(batch, -1, -1)[..., None])[..., 0]
                  + anchor[..., 3] * self.anchor_weight[:, None])
-        body_count = len(self.keypoint_weights)
-        points = moved.new_zeros(batch, body_count + len(self.fingertips), 3).index_add(
-            1, self.anchor_point, moved)
-        keypoints = moved.new_zeros(batch, N_KEYPOINTS, 3)
-        keypoints[:, BODY] = points[:, :body_count]
-        heads = bone_poses[:, self.hand_heads, :3, 3]  # (B, 2 * 16, 3)
-        tips = points[:, body_count:]  # (B, 10, 3)
-        for side, slot in enumerate((LEFT_HAND, RIGHT_HAND)):
-            h = heads[:, side * 16:(side + 1) * 16]
-            t = tips[:, side * 5:(side + 1) * 5]
-            fingers = torch.cat([h[:, 1:].reshape(-1, 5, 3, 3), t[:, :, None]], 2)
-            keypoints[:, slot] = torch.cat([h[:, :1], fingers.reshape(-1, 20, 3)], 1)
+        points = moved.new_zeros(batch, len(self.keypoint_weights) + len(self.fingertips),
+                                 3).index_add(1, self.anchor_point, moved)
+        keypoints = torch.cat([points, bone_poses[:, self.hand_heads, :3, 3],
+                               points.new_zeros(batch, 1, 3)], 1)[:, self.keypoint_source]
         centres = torch.einsum("bsij,sj->bsi", bone_poses[:, self.sphere_bone, :3, :],
                                self.sphere_local)
         spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)
