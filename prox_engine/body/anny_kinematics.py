@@ -15,6 +15,13 @@ multiplies every bone's product so far by that of the bone as many levels above 
 the 17 levels take 5 rounds over all bones. A round's cost is its dispatch for a few
 bodies (2 bodies: 2.3 -> 1.8 ms forward and backward) but its products for many (16: 3.8
 -> 4.8 ms).
+
+The chain's gradient is written out (:class:`_Chain`) instead of left to autograd, which
+would retrace every round: since W_d = W_c (W_c^-1 W_d) for every bone d below c, the
+loss's gradient in W_c, the others' local poses held, is (sum over d in c's subtree of
+G_d W_d^T) W_c^-T, with G the gradient in the posed poses: one product with a constant
+ancestor matrix for the sums, then one in each local pose K_c = W_p^-1 W_c (values and
+gradients as anny's, tests/test_body_model.py).
 """
 from __future__ import annotations
 
@@ -59,6 +66,14 @@ class AnnySkeleton(torch.nn.Module):
             above = above[above]
         self.register_buffer("jumps", torch.stack(jumps))  # (rounds, count + 1)
         self.register_buffer("above_root", torch.eye(4))
+        # Local rotation blocks are turn @ D (the root's: D_0) and each bone's subtree
+        # (itself and every bone below it), both in depth order, for _Chain's gradient.
+        self.register_buffer("chain_turn", torch.cat([torch.eye(3)[None], self.turn[1:]]))
+        subtree, bone, up = torch.eye(count), torch.arange(count), jumps[0]
+        while bool((up[bone] < count).any()):
+            bone = torch.where(up[bone] < count, up[bone], bone)  # the root stays put
+            subtree[bone, torch.arange(count)] = 1.0
+        self.register_buffer("subtree", subtree)
 
     def offsets(self, rest_poses: torch.Tensor) -> torch.Tensor:
         """(B, J, 3) each bone's head from its parent's in the parent's frame, depth order;
@@ -78,23 +93,58 @@ class AnnySkeleton(torch.nn.Module):
         batch = len(rotvecs)
         rotations = axis_angle_to_matrix(rotvecs)
         rotations = torch.cat([rotations, self.identity.expand(batch, 1, 3, 3)], 1)[:, self.slot]
-        offsets = offsets.expand(batch, -1, -1)
-        bottom = self.bottom.expand(batch, len(self.slot), 1, 4)
-        step = torch.cat([torch.cat([self.turn @ rotations, offsets[..., None]], -1), bottom], -2)
-        root = torch.cat([torch.cat([rotations[:, 0], transl[:, :, None]], -1), bottom[:, 0]],
-                         -2)[:, None]
-        if batch <= JUMP_BATCH:
-            poses = torch.cat([root, step[:, 1:], self.above_root.expand(batch, 1, 4, 4)], 1)
-            for above in self.jumps:
-                poses = poses.index_select(1, above) @ poses
-        else:
-            chain = [root]
-            for first, last in self.levels[1:]:
-                chain.append(chain[-1][:, self.local[first:last]] @ step[:, first:last])
-            poses = torch.cat(chain, 1)
+        shifts = torch.cat([transl[:, None], offsets.expand(batch, -1, -1)[:, 1:]], 1)
+        poses = _Chain.apply(rotations, shifts, self)
         poses = poses[:, self.inverse]
         rest_rotation, rest_head = rest_poses[..., :3, :3], rest_poses[..., :3, 3]
         rotation = poses[..., :3, :3] @ rest_rotation.transpose(-1, -2)
         shift = poses[..., :3, 3] - (rotation @ rest_head[..., None])[..., 0]
+        bottom = self.bottom.expand(batch, len(self.slot), 1, 4)
         transforms = torch.cat([torch.cat([rotation, shift[..., None]], -1), bottom], -2)
         return transforms, poses
+
+    def chain(self, local: torch.Tensor) -> torch.Tensor:
+        """Posed poses W (B, J, 4, 4), depth order, of the local poses K (B, J, 4, 4)."""
+        batch = len(local)
+        if batch <= JUMP_BATCH:
+            poses = torch.cat([local, self.above_root.expand(batch, 1, 4, 4)], 1)
+            for above in self.jumps:
+                poses = poses.index_select(1, above) @ poses
+            return poses[:, :-1]
+        chain = [local[:, :1]]
+        for first, last in self.levels[1:]:
+            chain.append(chain[-1][:, self.local[first:last]] @ local[:, first:last])
+        return torch.cat(chain, 1)
+
+
+class _Chain(torch.autograd.Function):
+    """Posed poses W (B, J, 4, 4), depth order, from local rotations D (B, J, 3, 3) and
+    translations (B, J, 3) (the root's: ``transl``; the others': offsets), with the
+    gradient of the module docstring."""
+
+    @staticmethod
+    def forward(ctx, rotations: torch.Tensor, shifts: torch.Tensor,
+                skeleton: AnnySkeleton) -> torch.Tensor:
+        bottom = skeleton.bottom.expand(*rotations.shape[:2], 1, 4)
+        local = torch.cat([torch.cat([skeleton.chain_turn @ rotations, shifts[..., None]],
+                                     -1), bottom], -2)
+        poses = skeleton.chain(local)
+        ctx.save_for_backward(poses)
+        ctx.skeleton = skeleton
+        return poses
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, None]:
+        poses, = ctx.saved_tensors
+        skeleton = ctx.skeleton
+        batch, count = poses.shape[:2]
+        sums = skeleton.subtree @ (grad @ poses.transpose(-1, -2)).reshape(batch, count, 16)
+        rotation, head = poses[..., :3, :3], poses[..., :3, 3:]
+        inverse_t = torch.cat([torch.cat([rotation, torch.zeros_like(head)], -1),
+                               torch.cat([-(rotation.transpose(-1, -2) @ head).transpose(-1, -2),
+                                          head.new_ones(batch, count, 1, 1)], -1)], -2)
+        parents = torch.cat([poses, skeleton.above_root.expand(batch, 1, 4, 4)], 1)[
+            :, skeleton.jumps[0, :count]]
+        local = parents.transpose(-1, -2) @ sums.view(batch, count, 4, 4) @ inverse_t
+        return (skeleton.chain_turn.transpose(-1, -2) @ local[..., :3, :3],
+                local[..., :3, 3], None)
