@@ -114,8 +114,8 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula for (..., 3) axis-angle vectors, smooth at zero: R = I + s K +
     c K^2 with K the cross-product matrix of the vector, s = sin(t) / t and c = (1 -
     cos(t)) / t^2 (t its angle). Differentiated in closed form (:class:`_Rodrigues`): a
-    body evaluation turns a hundred bones, and autograd's trace of the formula cost as
-    much as the rest of the kinematic chain."""
+    body evaluation turns 72 bones, and autograd's trace of the formula's two dozen
+    operations was, with the bone chain's, the largest cost of a keypoint evaluation."""
     return _Rodrigues.apply(aa)
 
 
