@@ -32,6 +32,11 @@ class Camera:
         return torch.stack([(u - self.cx) / self.fx * depth, (v - self.cy) / self.fy * depth,
                             depth], -1)
 
+    def rays(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Unit camera-space rays (N, 3) through ``pixels`` (N, 2) (distortion ignored)."""
+        ray = self.backproject(pixels[:, 0], pixels[:, 1], torch.ones(len(pixels)))
+        return ray / ray.norm(dim=-1, keepdim=True)
+
     def _distort(self, xy: torch.Tensor) -> torch.Tensor:
         k = list(self.k) + [0.0] * (5 - len(self.k))
         k1, k2, p1, p2, k3 = k[:5]

@@ -489,7 +489,8 @@ class Fitter:
         folded back to an ankle in the air, the keypoint's pull saturated."""
         ankle = foot[0]
         hips, knees_at, ankles_at = kp[:, hip], kp[:, knee], kp[:, ankle]
-        knee_ray, ankle_ray = (self._ray(rows.target[:, joint]) for joint in (knee, ankle))
+        knee_ray, ankle_ray = (self.camera.rays(rows.target[:, joint])
+                               for joint in (knee, ankle))
         miss = (self.camera.project(knees_at) - rows.target[:, knee]).norm(dim=-1)
         knees, reach = ray_points_at(knee_ray, hips, (knees_at - hips).norm(dim=-1),
                                      KNEE_SLACK)
@@ -503,11 +504,6 @@ class Fitter:
                 poses.append((torch.cat([knees[:, k, None], ankles[:, a, None], feet], 1),
                               worth & reach[:, k] & reaches[:, a]))
         return poses
-
-    def _ray(self, pixels: torch.Tensor) -> torch.Tensor:
-        """Unit camera rays (N, 3) through ``pixels`` (N, 2)."""
-        ray = self.camera.backproject(pixels[:, 0], pixels[:, 1], torch.ones(len(pixels)))
-        return ray / ray.norm(dim=-1, keepdim=True)
 
     def _announce(self, stage: str) -> None:
         if self.on_stage is not None:

@@ -274,10 +274,7 @@ def _depth(camera: Camera, posed: torch.Tensor, target: torch.Tensor, seen: torc
     torso edge, each a mean over the edges weighted by their end points' confidences, the
     3D edges foreshortened across the viewing ray as the candidate's orientation makes
     them; the shoulder width when no torso edge is seen, 3 m when nothing is."""
-    ray = torch.stack([(centre_px[:, 0] - camera.cx) / camera.fx,
-                       (centre_px[:, 1] - camera.cy) / camera.fy,
-                       torch.ones(len(centre_px))], 1)
-    ray = ray / ray.norm(dim=1, keepdim=True)
+    ray = camera.rays(centre_px)
     i, j = (torch.tensor(side) for side in zip(*TORSO_EDGES))
     weight = seen[:, i] * seen[:, j]  # (N, E)
     shoulders = seen[:, 2] * seen[:, 5]

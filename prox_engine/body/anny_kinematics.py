@@ -50,8 +50,9 @@ class AnnySkeleton(torch.nn.Module):
         self.register_buffer("inverse", inverse)
         self.register_buffer("parent", parent)
         self.register_buffer("slot", slot[order])  # each bone's rotation, depth order
-        self.register_buffer("turn", (reference[parent].transpose(-1, -2)
-                                      @ reference)[order])  # U_p^T U_c
+        turn = (reference[parent].transpose(-1, -2) @ reference)[order]  # U_p^T U_c
+        turn[0] = torch.eye(3)  # the root's local rotation is D_0 itself
+        self.register_buffer("turn", turn)  # depth order
         self.register_buffer("root_reference", reference[0])
         self.register_buffer("bottom", torch.tensor([0.0, 0.0, 0.0, 1.0]))
         self.register_buffer("identity", torch.eye(3))  # the unposed bones' rotation
@@ -66,9 +67,8 @@ class AnnySkeleton(torch.nn.Module):
             above = above[above]
         self.register_buffer("jumps", torch.stack(jumps))  # (rounds, count + 1)
         self.register_buffer("above_root", torch.eye(4))
-        # Local rotation blocks are turn @ D (the root's: D_0) and each bone's subtree
-        # (itself and every bone below it), both in depth order, for _Chain's gradient.
-        self.register_buffer("chain_turn", torch.cat([torch.eye(3)[None], self.turn[1:]]))
+        # Each bone's subtree (itself and every bone below it), depth order, for _Chain's
+        # gradient.
         subtree, bone, up = torch.eye(count), torch.arange(count), jumps[0]
         while bool((up[bone] < count).any()):
             bone = torch.where(up[bone] < count, up[bone], bone)  # the root stays put
@@ -126,7 +126,7 @@ class _Chain(torch.autograd.Function):
     def forward(ctx, rotations: torch.Tensor, shifts: torch.Tensor,
                 skeleton: AnnySkeleton) -> torch.Tensor:
         bottom = skeleton.bottom.expand(*rotations.shape[:2], 1, 4)
-        local = torch.cat([torch.cat([skeleton.chain_turn @ rotations, shifts[..., None]],
+        local = torch.cat([torch.cat([skeleton.turn @ rotations, shifts[..., None]],
                                      -1), bottom], -2)
         poses = skeleton.chain(local)
         ctx.save_for_backward(poses)
@@ -146,5 +146,5 @@ class _Chain(torch.autograd.Function):
         parents = torch.cat([poses, skeleton.above_root.expand(batch, 1, 4, 4)], 1)[
             :, skeleton.jumps[0, :count]]
         local = parents.transpose(-1, -2) @ sums.view(batch, count, 4, 4) @ inverse_t
-        return (skeleton.chain_turn.transpose(-1, -2) @ local[..., :3, :3],
+        return (skeleton.turn.transpose(-1, -2) @ local[..., :3, :3],
                 local[..., :3, 3], None)
