@@ -41,6 +41,9 @@ class FitConfig:
     scale_support: bool = True  # the scale search asks that the body rest on a surface
     # ... and that the joints the detector clearly saw be in front of the scan
     scale_visibility: bool = True
+    # ... and that the legs it reports faintly be out of view (see
+    # scale_search.FAINT_WEIGHT)
+    scale_faint_legs: bool = True
     # ... and counts a body through a thin surface by its axis (see scale_search.AXIS_WEIGHT)
     scale_axes: bool = True
     # ... and does not count the toes as penetrating (see scale_search.TOE_REACH)

@@ -16,8 +16,9 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray, vertex_normals
-from .keypoints import (ANKLES, ARMS, BODY, FACE, LABELLINGS, LEFT_HAND, FEET, RIGHT_HAND,
-                        SEEN, HIPS, SHINS, Keypoints, ankle_seen, side_swap, thighs_hidden)
+from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LABELLINGS,
+                        LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, side_swap,
+                        thighs_hidden)
 from .initialisation import best_start
 from .scale_search import (best_scale, carrying_vertices, toe_vertices,
                            unseen_feet_on_kneeling_legs)
@@ -102,13 +103,13 @@ class _Choice:
 @dataclass
 class _Rows:
     """What the stages fit, one row per frame and candidate: the parameters, the keypoints
-    as labelled for that row (and the body joints the detector clearly saw), depth points
-    and the parts relabelled."""
+    as labelled for that row (and the detector's confidences of the body joints), depth
+    points and the parts relabelled."""
 
     params: Params
     target: torch.Tensor  # (rows, K, 2)
     conf: torch.Tensor  # (rows, K)
-    seen: torch.Tensor  # (rows, 25) bool
+    detected: torch.Tensor  # (rows, 25), neck and hips included
     depth: list
     labels: list[tuple[str, ...]]
 
@@ -119,13 +120,13 @@ class _Rows:
                   .flatten(0, 1).contiguous() for k in self.params}
         return _Rows(params, self.target.repeat_interleave(count, 0),
                      self.conf.repeat_interleave(count, 0),
-                     self.seen.repeat_interleave(count, 0),
+                     self.detected.repeat_interleave(count, 0),
                      [d for d in self.depth for _ in range(count)],
                      [lab for lab in self.labels for _ in range(count)])
 
     def taken(self, rows: list[int]) -> "_Rows":
         return _Rows({k: v[rows].contiguous() for k, v in self.params.items()},
-                     self.target[rows], self.conf[rows], self.seen[rows],
+                     self.target[rows], self.conf[rows], self.detected[rows],
                      [self.depth[r] for r in rows],
                      [self.labels[r] for r in rows])
 
@@ -222,7 +223,7 @@ class Fitter:
         self.evaluations = 0
         stage_evaluations: dict[str, int] = {}
         target, conf = self._targets(frames)
-        seen = conf[:, BODY] > SEEN  # the detector's, neck and hips included
+        detected = conf[:, BODY].clone()  # neck and hips included
         cfg = self.config
         feet_left_out = (thighs_hidden(conf) if warm_start is None and cfg.start_other_thighs
                          and cfg.start_thighs_hidden and not cfg.start_choice_feet else None)
@@ -260,12 +261,12 @@ class Fitter:
         choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
                          arms=self.config.start_choice_arms, feet_left_out=feet_left_out)
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
-                     seen.repeat_interleave(keep, 0),
+                     detected.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
             rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]
-            rows.seen[b] = rows.seen[b, order[BODY]]
+            rows.detected[b] = rows.detected[b, order[BODY]]
         final: dict[str, torch.Tensor] = {}
         rescaled = not self.config.scale_search or (
             warm_start is not None and not self.config.sequence_scale_search)
@@ -283,8 +284,9 @@ class Fitter:
             if not rescaled and self._scene_stage(stage):
                 t0, before = time.perf_counter(), self.evaluations
                 if cfg.point_unseen_feet:
-                    rows.params.update(self._pointed_feet(rows.params, rows.seen))
-                scale, _ = self._scale_search(rows.params, rows.seen)
+                    rows.params.update(self._pointed_feet(rows.params,
+                                                          rows.detected > SEEN))
+                scale, _ = self._scale_search(rows.params, rows.detected)
                 self._rescale(rows.params, scale, len(frames))
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
@@ -383,22 +385,25 @@ class Fitter:
             with torch.no_grad():
                 out = self.body(rows.params, vertices=False)
                 terms = {**terms, "data": self._data_term(stage, out, rows.target, conf)}
-        return self._best_rows(rows.params, rows.seen, terms, keep, choice.by_scene,
+        return self._best_rows(rows.params, rows.detected, terms, keep, choice.by_scene,
                                choice.tried, choice.priors)
 
-    def _best_rows(self, params: Params, seen: torch.Tensor, terms: dict[str, torch.Tensor],
+    def _best_rows(self, params: Params, detected: torch.Tensor,
+                   terms: dict[str, torch.Tensor],
                    keep: int, by_scene: bool, tried: torch.Tensor | None = None,
                    priors: bool = True) -> list[int]:
         """Rows (one per frame) of the candidates, ``keep`` per frame, with the lowest
         objective (``terms``; without the POSTURE_PRIORS unless ``priors``) plus,
         ``by_scene`` with a scale search, ``start_scene_weight`` times how badly each can
-        meet the scene at its best scale (with the joints ``seen`` (rows, 25) in view);
+        meet the scene at its best scale (the body joints ``detected`` (rows, 25) as
+        :meth:`_scale_search` reads them);
         only the rows ``tried`` ((rows,) bool; None: all) compete, and only theirs are
         searched."""
         score = sum(v for k, v in terms.items() if priors or k not in POSTURE_PRIORS)
         rows = torch.arange(len(score)) if tried is None else tried.nonzero().flatten()
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
-            cost = self._scale_search({k: v[rows] for k, v in params.items()}, seen[rows])[1]
+            cost = self._scale_search({k: v[rows] for k, v in params.items()},
+                                      detected[rows])[1]
             score = score.index_add(0, rows, self.config.start_scene_weight * cost)
         if tried is not None:
             score = score.masked_fill(~tried, torch.inf)
@@ -604,25 +609,43 @@ class Fitter:
     def _scales_searched(self) -> bool:
         return self.config.scale_search and any(self._scene_stage(s) for s in self.config.stages)
 
-    def _scale_search(self, params: Params, seen: torch.Tensor
+    def _scale_search(self, params: Params, detected: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per body, the scale about the camera centre at which it best meets the scene
-        with the joints the detector clearly saw (``seen``, (B, 25)) in view, and that
-        scale's cost (see :mod:`scale_search`)."""
+        with the joints the detector clearly saw (``detected`` (B, 25), its confidences)
+        in view and the legs it reports faintly out of it, and that scale's cost (see
+        :mod:`scale_search`)."""
         cfg, body = self.config, self.body
         with torch.no_grad():
             out = body(params)
             vertices = out.vertices
             normals = vertex_normals(vertices, body.faces)
-        joints = [out.keypoints[b, BODY][seen[b]] for b in range(len(seen))]
+        joints = out.keypoints[:, BODY]
+        seen = [joints[b, detected[b] > SEEN] for b in range(len(joints))]
+        faint = [joints[b, self._faint_legs(detected[b], joints[b])]
+                 for b in range(len(joints))]
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
         scale, cost = best_scale(vertices, normals, body.scene_vertices, self.carrying,
                                  self.contact_part_ids,
                                  self.scene, cfg.uses("contact"), cfg.uses("penetration"),
                                  cfg.contact_rho, cfg.contact_max_angle,
                                  cfg.contact_max_distance, cfg.scale_support,
-                                 joints if cfg.scale_visibility else None, self.toes, axes)
+                                 seen if cfg.scale_visibility else None, self.toes, axes,
+                                 faint if cfg.scale_faint_legs else None)
         return scale, cost
+
+    def _faint_legs(self, detected: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+        """(25,) bool: the knees and ankles the detector reports under HIDDEN (``detected``
+        (25,)) whose fitted joints (``joints`` (25, 3), camera frame) project into the
+        image (without its size, twice the principal point): a leg cut off by the
+        image's edge is not hidden."""
+        cam = self.camera
+        u, v = cam.project(joints).unbind(-1)
+        inside = ((u >= 0) & (u < (cam.width or 2 * cam.cx))
+                  & (v >= 0) & (v < (cam.height or 2 * cam.cy)))
+        legs = torch.zeros(len(detected), dtype=torch.bool)
+        legs[[*KNEES, *ANKLES]] = True
+        return legs & (detected < HIDDEN) & inside
 
     def _pointed_feet(self, params: Params, seen: torch.Tensor) -> Params:
         """``params`` with the unseen feet of kneeling legs pointed along the shins (see

@@ -1090,3 +1090,18 @@ def test_a_kneeler_whose_feet_are_unseen_is_fitted_at_its_depth(body):
         "prox-unpointed-feet")
     assert abs(pointed - 1) < 0.02 and error < 0.06, (pointed, error)
     assert unpointed < 0.97 and error_unpointed > 0.10, (unpointed, error_unpointed)
+
+
+def test_faint_legs_are_the_knees_and_ankles_reported_faintly_in_the_image(body):
+    """The scale search's faint legs: knees and ankles under HIDDEN (or not reported)
+    whose fitted joints project into the image; a leg cut off by the image's edge, a
+    clearly seen knee and a faint wrist are not among them."""
+    from prox_engine.keypoints import ANKLES, KNEES
+
+    fitter = Fitter(body, CAMERA, load_config("rgb"))
+    detected = torch.full((25,), 0.8)
+    detected[[*KNEES, *ANKLES, 4]] = torch.tensor([0.1, 0.9, 0.0, 0.2, 0.0])
+    joints = torch.tensor([0.0, 0.0, 3.0]).repeat(25, 1)  # on the optical axis
+    joints[ANKLES[1], 1] = 3.0  # 45 degrees down: below the image
+    faint = fitter._faint_legs(detected, joints)
+    assert faint.nonzero().flatten().tolist() == [KNEES[0], ANKLES[0]]

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 import trimesh
 
@@ -508,6 +509,48 @@ def test_scale_search_keeps_the_joints_the_detector_saw_in_view(body):
     scale = search([seen])
     # In view, and no nearer than it takes to bring the chest out of the wall too.
     assert float(limit.min()) - 0.06 < scale <= float(limit.min()) + 0.01, (scale, limit)
+
+
+def test_scale_search_charges_faint_legs_in_view(body):
+    """A kneeler on the floor behind a low table, seen by a tilted, rolled, off-centre
+    camera, whose knees and ankles the detector reports faintly: the table hides them,
+    so they cost nothing where the body is; without the table they are in view at every
+    scale and cost FAINT_WEIGHT on top, and the scale does not move."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.keypoints import ANKLES, KNEES
+    from prox_engine.scale_search import FAINT_WEIGHT, best_scale
+
+    from .test_fitting import tilted_camera
+
+    cam2world = tilted_camera()  # at (1.7, -2.4, 1.6), looking at (0.2, 0.3, 0.9)
+    with torch.no_grad():
+        out = body(body.init_params(1, "kneeling"))
+    lift = torch.tensor([0.2, 0.3, -float(out.vertices[0, :, 2].min())])
+    camera_xy = torch.tensor(cam2world[:2, 3], dtype=torch.float32)
+    toward = (camera_xy - lift[:2]) / (camera_xy - lift[:2]).norm()
+    table = trimesh.creation.box([0.6, 0.6, 0.45])  # between the camera and the knees
+    table.apply_translation([*(lift[:2] + 0.6 * toward).tolist(), 0.225])
+    vertices = _in_camera(out.vertices[0] + lift, cam2world)[None]
+    normals = vertex_normals(vertices, body.faces)
+    legs = _in_camera(out.keypoints[0, [*KNEES, *ANKLES]] + lift, cam2world)
+
+    def search(room, faint):
+        scene = _seen_scene(room, cam2world, dim=128, spacing=0.02)
+        scale, cost = best_scale(vertices, normals, body.scene_vertices, _carrying(body),
+                                 list(body.contact_parts.values()), scene, True, True,
+                                 rho=0.05, max_angle_deg=45, max_distance=0.15,
+                                 faint_joints=faint)
+        return float(scale[0]), float(cost[0]), scene
+
+    floor = plane_mesh(size=8.0)
+    scale, cost, scene = search(trimesh.util.concatenate([floor, table]), None)
+    assert abs(scale - 1.0) < 0.03  # kneeling on the floor where it is
+    assert float(scene.visible_scale(legs, 1.4).max()) < scale  # the table hides them
+    assert search(trimesh.util.concatenate([floor, table]), [legs])[:2] == (scale, cost)
+    bare_scale, bare_cost, _ = search(floor, None)
+    in_view = search(floor, [legs])
+    assert in_view[0] == bare_scale
+    assert in_view[1] == pytest.approx(bare_cost + FAINT_WEIGHT, abs=1e-5)
 
 
 def test_scale_search_does_not_keep_a_body_through_a_board(body):
