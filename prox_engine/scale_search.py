@@ -44,7 +44,7 @@ LOWEST = 0.15
 LOWEST_SHARE = 0.25
 CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
 # The search evaluates the scales CHUNK at a time, nearest the fitted size first, and
-# skips those whose size prior and hidden joints alone exceed the best total found
+# skips those whose size prior and joints' rays alone exceed the best total found
 # (bounded_search): about half of them, the same pick.
 CHUNK = 16
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
@@ -188,33 +188,34 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                     scaled, signed, normals[b, sampled], carrying, lowest_vertices, scene, rho)
             return cost
 
-        hidden = (_in_view(seen_joints[b], scene, VISIBILITY_WEIGHT, hidden=True)
-                  if seen_joints is not None else torch.zeros_like(prior))
+        rays = torch.zeros_like(prior)  # the seen joints behind the scan, the faint in view
+        if seen_joints is not None:
+            rays = rays + VISIBILITY_WEIGHT * _ray_share(seen_joints[b], scene, behind=True)
         if faint_joints is not None:
-            hidden = hidden + _in_view(faint_joints[b], scene, FAINT_WEIGHT, hidden=False)
-        picked, cost = bounded_search(cost_at, hidden, prior)
+            rays = rays + FAINT_WEIGHT * _ray_share(faint_joints[b], scene, behind=False)
+        picked, cost = bounded_search(cost_at, rays, prior)
         pick = int((cost + prior[picked]).argmin())
         best.append(SCALES[picked[pick]])
         lowest_cost.append(cost[pick])
     return torch.stack(best), torch.stack(lowest_cost)
 
 
-def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], hidden: torch.Tensor,
+def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], rays: torch.Tensor,
                    prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The indices into SCALES (ascending) at which the search evaluates ``cost_at``
     (indices -> (S,) costs >= 0 of contact, penetration and support) and their costs
-    with ``hidden`` (97,) added. The other terms being >= 0, ``hidden`` plus the size
+    with ``rays`` (97,) added. The other terms being >= 0, ``rays`` plus the size
     ``prior`` (97,) bounds each scale's total from below: scales are evaluated CHUNK at
     a time in the order of that bound, and those whose bound exceeds the lowest total
     found are not, since they cannot win. The same pick as evaluating every scale."""
-    bound = hidden + prior
+    bound = rays + prior
     best_total = torch.tensor(float("inf"))
     picked, costs = [], []
     for chunk in bound.argsort().split(CHUNK):
         chunk = chunk[bound[chunk] <= best_total]
         if len(chunk) == 0:
             break
-        cost = cost_at(chunk) + hidden[chunk]
+        cost = cost_at(chunk) + rays[chunk]
         best_total = torch.minimum(best_total, (cost + prior[chunk]).min())
         picked.append(chunk)
         costs.append(cost)
@@ -223,14 +224,13 @@ def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], hidden: torc
     return picked[order], cost[order]
 
 
-def _in_view(joints: torch.Tensor, scene: Scene, weight: float, hidden: bool
-             ) -> torch.Tensor:
-    """(len(SCALES),) ``weight`` times the share of ``joints`` (J, 3; camera frame) that
-    are behind the scan (``hidden``) or in front of it at each scale: one ray per joint."""
+def _ray_share(joints: torch.Tensor, scene: Scene, behind: bool) -> torch.Tensor:
+    """(len(SCALES),) the share of ``joints`` (J, 3; camera frame) behind the scan
+    (``behind``) or in front of it at each scale, 0 without joints: one ray per joint."""
     if not len(joints):
         return torch.zeros(len(SCALES))
-    behind = SCALES[:, None] > scene.visible_scale(joints, float(SCALES[-1]))
-    return weight * (behind if hidden else ~behind).float().mean(1)
+    back = SCALES[:, None] > scene.visible_scale(joints, float(SCALES[-1]))
+    return (back if behind else ~back).float().mean(1)
 
 
 def _lowest(points: torch.Tensor, scene: Scene) -> torch.Tensor:
