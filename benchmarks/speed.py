@@ -1,7 +1,9 @@
 """Where the time goes: per configuration and mode (single-frame, sequence, batched), the
 seconds and body-model evaluations per frame, and the seconds per frame divided by the time
 of one body forward+backward measured on the same machine in the same run (a ratio that
-does not depend on the machine), with the accuracy (PJE) to show nothing was lost. In
+does not depend on the machine), with the accuracy (PJE) to show nothing was lost. A
+shared machine's speed drifts by a third within a minute, so the unit is measured before
+and after each recording's fit, and each fit is divided by the mean of the two. In
 sequence mode also the seconds of the frames fitted from their neighbour alone: what a long
 recording costs per frame, once its anchor frame's full fit is spread over many frames.
 
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import statistics
 import time
 from pathlib import Path
 
@@ -53,9 +56,15 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     body = AnnyBody.load()
     data = out / "data"
     recordings = make_benchmark(data, seed=seed, frames=frames, kinds=kinds, body=body)
-    unit = {"frozen_shape": body_seconds(body, False), "free_shape": body_seconds(body, True)}
-    log(f"body forward+backward: {unit['frozen_shape'] * 1000:.1f} ms with the shape frozen, "
-        f"{unit['free_shape'] * 1000:.1f} ms free")
+    units: dict[str, list[float]] = {"frozen_shape": [], "free_shape": []}
+
+    def measure_unit() -> float:
+        """Both units measured now (recorded); returns the ratio's (shape free)."""
+        units["frozen_shape"].append(body_seconds(body, False))
+        units["free_shape"].append(body_seconds(body, True))
+        return units["free_shape"][-1]
+
+    unit_before = measure_unit()
     scenes = {rec: truth_scene(data, rec, sdf_dim) for rec in recordings}
     for rec in recordings:  # the fitter's SDFs, cached on disk before anything is timed
         load_scene(Recording(data, rec), sdf_dim)
@@ -65,30 +74,37 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         for mode, (size, sequence) in modes.items():
             config = dataclasses.replace(load_config(name), batch_size=size, sdf_dim=sdf_dim)
             fitted = out / "fits" / name / mode.replace(" ", "")
-            wall, counted, evaluations, fit_seconds, errors = 0.0, 0, 0.0, 0.0, []
+            wall, counted, evaluations, fit_seconds, in_units, errors = 0.0, 0, 0.0, 0.0, 0.0, []
             frames_seen: list[dict] = []
             for rec in recordings:
                 start = time.perf_counter()
                 summary = fit_recording(data, rec, fitted, config, body,
                                         sequence=sequence).summary
                 wall += time.perf_counter() - start
+                unit_after = measure_unit()
                 n = summary["frames_fitted"]
                 counted += n
                 evaluations += summary["body_evaluations_per_frame"] * n
                 fit_seconds += summary["seconds_per_frame"] * n
+                in_units += summary["seconds_per_frame"] * n / ((unit_before + unit_after) / 2)
+                unit_before = unit_after
                 frames_seen += summary["frames"]
                 errors += evaluate_recording(data, rec, fitted, body, scenes[rec])
             rows[(name, mode)] = {
                 "wall_seconds_per_frame": wall / counted,
                 "fit_seconds_per_frame": fit_seconds / counted,
                 "body_evaluations_per_frame": evaluations / counted,
-                "ratio": fit_seconds / counted / unit["free_shape"],
+                "ratio": in_units / counted,
                 "warm_started_seconds_per_frame": warm_started_seconds(frames_seen),
                 "pje_mm": aggregate(errors)["pje"]}
             log(f"{name:<10} {mode:<9} " + " ".join(f"{k} {v:.3g}"
                                                     for k, v in rows[(name, mode)].items()
                                                     if v is not None))
-    return {"unit_seconds": unit, "rows": rows,
+    unit = {kind: statistics.median(times) for kind, times in units.items()}
+    log(f"body forward+backward: {unit['frozen_shape'] * 1000:.1f} ms with the shape frozen, "
+        f"{unit['free_shape'] * 1000:.1f} ms free (medians of {len(units['free_shape'])}; "
+        f"free {min(units['free_shape']) * 1000:.1f}-{max(units['free_shape']) * 1000:.1f})")
+    return {"unit_seconds": unit, "unit_samples": units, "rows": rows,
             "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": batch,
                          "sdf_dim": sdf_dim, "threads": torch.get_num_threads()}}
 
@@ -107,7 +123,9 @@ def markdown(result: dict) -> str:
     text = (f"Seed {s['seed']}, {s['frames']} frames x {len(s['kinds'])} kinds, "
             f"{s['threads']} thread. One body forward+backward: "
             f"{unit['frozen_shape'] * 1000:.1f} ms (shape frozen), "
-            f"{unit['free_shape'] * 1000:.1f} ms (shape free; the ratio's unit).\n\n"
+            f"{unit['free_shape'] * 1000:.1f} ms (shape free; the ratio's unit), medians of "
+            f"{len(result['unit_samples']['free_shape'])} measured between the fits, each "
+            f"fit divided by the mean of the two around it.\n\n"
             "| config | mode | s/frame (fit) | s/frame (wall) | body evaluations/frame "
             "| s/frame / body eval | s/frame warm-started | PJE mm |\n"
             "|---|---|---|---|---|---|---|---|\n")

@@ -148,3 +148,25 @@ def test_speed_benchmark_counts_warm_started_frames_apart():
     assert warm_started_seconds(frames) == pytest.approx(0.5)
     assert warm_started_seconds(frames[:1]) is None
 
+
+
+def test_speed_benchmark_divides_each_fit_by_the_unit_measured_around_it(tmp_path, body):
+    """The machine's speed drifts during a run, so `benchmarks.speed` measures the ratio's
+    unit (one body forward+backward, shape free) before and after each recording's fit
+    and divides that fit's seconds by the mean of the two, not by one unit measured at
+    the start."""
+    import json
+
+    from benchmarks.speed import run
+
+    result = run(tmp_path, seed=5, frames=1, kinds=["sit"], configs=["rgb"], batch=2,
+                 sdf_dim=64, log=lambda _: None)
+    free = result["unit_samples"]["free_shape"]
+    assert len(free) == 4 and len(result["unit_samples"]["frozen_shape"]) == 4
+    for i, (mode, folder) in enumerate([("single", "single"), ("sequence", "sequence"),
+                                        ("batch 2", "batch2")]):
+        summary = json.loads(next((tmp_path / "fits" / "rgb" / folder).glob(
+            "*/summary.json")).read_text())
+        expected = summary["seconds_per_frame"] / ((free[i] + free[i + 1]) / 2)
+        assert result["rows"][("rgb", mode)]["ratio"] == pytest.approx(expected)
+    assert result["unit_seconds"]["free_shape"] == pytest.approx(sum(sorted(free)[1:3]) / 2)
