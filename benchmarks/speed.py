@@ -64,10 +64,10 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         units["free_shape"].append(body_seconds(body, True))
         return units["free_shape"][-1]
 
-    unit_before = measure_unit()
     scenes = {rec: truth_scene(data, rec, sdf_dim) for rec in recordings}
     for rec in recordings:  # the fitter's SDFs, cached on disk before anything is timed
         load_scene(Recording(data, rec), sdf_dim)
+    unit_before = measure_unit()  # right before the first fit
     modes = {"single": (1, False), "sequence": (1, True), f"batch {batch}": (batch, False)}
     rows = {}
     for name in configs:

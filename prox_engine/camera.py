@@ -37,6 +37,13 @@ class Camera:
         ray = self.backproject(pixels[:, 0], pixels[:, 1], torch.ones(len(pixels)))
         return ray / ray.norm(dim=-1, keepdim=True)
 
+    def in_image(self, pixels: torch.Tensor) -> torch.Tensor:
+        """(...,) bool: whether ``pixels`` (..., 2) lie in the image (without its size in
+        the calibration, twice the principal point)."""
+        u, v = pixels.unbind(-1)
+        return ((u >= 0) & (u < (self.width or 2 * self.cx))
+                & (v >= 0) & (v < (self.height or 2 * self.cy)))
+
     def _distort(self, xy: torch.Tensor) -> torch.Tensor:
         k = list(self.k) + [0.0] * (5 - len(self.k))
         k1, k2, p1, p2, k3 = k[:5]

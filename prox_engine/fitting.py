@@ -621,9 +621,9 @@ class Fitter:
             vertices = out.vertices
             normals = vertex_normals(vertices, body.faces)
         joints = out.keypoints[:, BODY]
-        seen = [joints[b, detected[b] > SEEN] for b in range(len(joints))]
-        faint = [joints[b, self._faint_legs(detected[b], joints[b])]
-                 for b in range(len(joints))]
+        seen, faint = detected > SEEN, self._faint_legs(detected, joints)
+        seen = [joints[b, seen[b]] for b in range(len(joints))]
+        faint = [joints[b, faint[b]] for b in range(len(joints))]
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
         scale, cost = best_scale(vertices, normals, body.scene_vertices, self.carrying,
                                  self.contact_part_ids,
@@ -635,17 +635,12 @@ class Fitter:
         return scale, cost
 
     def _faint_legs(self, detected: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
-        """(25,) bool: the knees and ankles the detector reports under HIDDEN (``detected``
-        (25,)) whose fitted joints (``joints`` (25, 3), camera frame) project into the
-        image (without its size, twice the principal point): a leg cut off by the
-        image's edge is not hidden."""
-        cam = self.camera
-        u, v = cam.project(joints).unbind(-1)
-        inside = ((u >= 0) & (u < (cam.width or 2 * cam.cx))
-                  & (v >= 0) & (v < (cam.height or 2 * cam.cy)))
-        legs = torch.zeros(len(detected), dtype=torch.bool)
+        """(..., 25) bool: the knees and ankles the detector reports under HIDDEN
+        (``detected`` (..., 25)) whose fitted joints (``joints`` (..., 25, 3), camera
+        frame) project into the image: a leg cut off by the image's edge is not hidden."""
+        legs = torch.zeros(detected.shape[-1], dtype=torch.bool)
         legs[[*KNEES, *ANKLES]] = True
-        return legs & (detected < HIDDEN) & inside
+        return legs & (detected < HIDDEN) & self.camera.in_image(self.camera.project(joints))
 
     def _pointed_feet(self, params: Params, seen: torch.Tensor) -> Params:
         """``params`` with the unseen feet of kneeling legs pointed along the shins (see
