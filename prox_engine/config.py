@@ -183,6 +183,12 @@ class FitConfig:
     # legs made a seated person a standing one, metres off.
     upright_weight: float = 0.0
     upright_rho: float = 0.35
+    # Every stage: the shin of a leg the detector reports down to the knee and no further
+    # (keypoints.cut_legs: cut off by the image's edge, or wholly hidden below the knee)
+    # is drawn toward hanging plumb, as much as the trunk is upright
+    # (losses.plumb_shins). Nothing else places that shin, and the scale search stands
+    # the body on the guess.
+    plumb_shin_weight: float = 0.0
     contact_rho: float = 0.05
     contact_max_angle: float = 45.0
     contact_max_distance: float = 0.15  # vertices farther than this are not attracted

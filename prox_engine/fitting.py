@@ -17,8 +17,8 @@ from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray, vertex_normals
 from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LABELLINGS,
-                        LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, side_swap,
-                        thighs_hidden)
+                        LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, cut_legs,
+                        side_swap, thighs_hidden)
 from .initialisation import best_start
 from .scale_search import (best_scale, carrying_vertices, toe_vertices,
                            unseen_feet_on_kneeling_legs)
@@ -550,6 +550,10 @@ class Fitter:
         if cfg.upright_weight > 0:
             terms["upright"] = cfg.upright_weight * ankle_seen(conf) * losses.upright(
                 out, self.up, cfg.upright_rho)
+        if cfg.plumb_shin_weight > 0:
+            cut = cut_legs(conf)
+            terms["plumb_shins"] = (cfg.plumb_shin_weight * losses.plumb_shins(out, self.up, cut)
+                                    if bool(cut.any()) else conf.new_zeros(len(conf)))
         if w.get("self_penetration", 0) > 0:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:

@@ -171,6 +171,14 @@ def ankle_seen(conf: torch.Tensor) -> torch.Tensor:
     return (conf[..., ANKLES] > 0).any(-1)
 
 
+def cut_legs(conf: torch.Tensor) -> torch.Tensor:
+    """(..., 2) per leg of SHINS, whether the detector reported its knee and nothing below
+    it (ankle, toes, heel), from confidences (..., K): a leg cut off by the image's edge
+    or wholly hidden below the knee, whose shin the fit has to guess."""
+    below = conf[..., [foot for _, foot in SHINS]]  # (..., 2, 4)
+    return (conf[..., KNEES] > 0) & (below == 0).all(-1)
+
+
 def thighs_hidden(conf: torch.Tensor) -> torch.Tensor:
     """(...,) whether the detector reports neither hip nor knee above HIDDEN, from
     confidences (..., K): the thighs are behind something (a seated person's, behind a

@@ -8,7 +8,7 @@ import torch
 from .body.base import BodyModel, BodyOutput
 from .camera import Camera
 from .geometry import VertexNormals, grid_subsample, vertex_normals
-from .keypoints import BODY, MID_HIP, NECK
+from .keypoints import BODY, MID_HIP, NECK, SHINS
 from .scene import Scene
 
 
@@ -34,6 +34,23 @@ def upright(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
     angle = torch.atan2(torch.linalg.cross(trunk, up.expand_as(trunk)).norm(dim=-1),
                         trunk @ up)
     return gmof(angle ** 2, rho)
+
+
+def plumb_shins(out: BodyOutput, up: torch.Tensor, cut: torch.Tensor) -> torch.Tensor:
+    """(B,) how far the shins of the legs ``cut`` ((B, 2) bool, per leg of SHINS) are from
+    hanging plumb: 1 + the cosine of each shin (knee to ankle) with world ``up`` (3,) in
+    camera coordinates, 0 straight down, 2 straight up, summed over those legs. Weighted
+    by the square of the trunk's uprightness (the cosine of mid-hip to neck with up,
+    clamped at 0, held constant): a standing or seated person's lower legs hang about
+    plumb, a lying one's do not."""
+    keypoints = out.keypoints
+    trunk = keypoints[:, NECK] - keypoints[:, MID_HIP]
+    upright = ((trunk @ up) / trunk.norm(dim=-1).clamp_min(1e-9)).clamp(min=0).detach()
+    cost = keypoints.new_zeros(len(keypoints))
+    for leg, (knee, foot) in enumerate(SHINS):
+        shin = keypoints[:, foot[0]] - keypoints[:, knee]
+        cost = cost + cut[:, leg] * (1 + (shin @ up) / shin.norm(dim=-1).clamp_min(1e-9))
+    return upright ** 2 * cost
 
 
 def penetration_vertices(body: BodyModel, spacing: float, rest: torch.Tensor | None = None

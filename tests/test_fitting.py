@@ -138,6 +138,84 @@ def test_upright_term_spares_frames_cut_off_at_the_knees(body):
                                           [None, None], None)
 
 
+def _with_shin_bent(body, cam2world: np.ndarray, tip_degrees: float, bend_degrees: float
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """World and camera-frame BODY_25 keypoints of a mean standing body on the floor,
+    tipped by ``tip_degrees`` about the world x axis, its right shin then turned by
+    ``bend_degrees`` about the world x axis at the knee."""
+    out, shift = _placed(body, body.init_params(1), cam2world)
+    tip = torch.tensor(Rotation.from_euler("x", tip_degrees, degrees=True).as_matrix(),
+                       dtype=torch.float32)
+    world = (out.keypoints[0] + shift) @ tip.T
+    bend = torch.tensor(Rotation.from_euler("x", bend_degrees, degrees=True).as_matrix(),
+                        dtype=torch.float32)
+    world[11] = world[10] + (world[11] - world[10]) @ bend.T  # right knee, ankle
+    return world, world_to_camera(world, cam2world)
+
+
+def test_cut_off_shins_are_drawn_plumb(body):
+    """Seen by a tilted, rolled, off-centre camera, a leg reported down to the knee and
+    no further costs 1 + the cosine of its shin with world up, times the trunk's
+    uprightness squared (worked out here in the world frame); a leg with its ankle or
+    without its knee reported costs nothing, nor does a lying body."""
+    from prox_engine.keypoints import cut_legs
+    from prox_engine.losses import plumb_shins
+
+    cam2world = tilted_camera()
+    up = floor_scene(cam2world).up_in_camera()
+    conf = torch.full((4, N_KEYPOINTS), 0.9)
+    conf[:, [11, 22, 23, 24]] = 0.0  # nothing below the right knee ...
+    conf[1, 11] = 0.2  # ... but the ankle, faintly
+    conf[2, 10] = 0.0  # ... nor the knee
+    conf[3, [14, 19, 20, 21]] = 0.0  # nor below the left knee
+    assert cut_legs(conf).tolist() == [[True, False], [False, False], [False, False],
+                                       [True, True]]
+
+    def cost(tip: float, bend: float, cut: list[bool]) -> tuple[float, float]:
+        world, camera = _with_shin_bent(body, cam2world, tip, bend)
+        trunk, value = world[1] - world[8], 0.0
+        for leg, (knee, ankle) in enumerate([(10, 11), (13, 14)]):
+            shin = world[ankle] - world[knee]
+            value += cut[leg] * (1 + float(shin[2] / shin.norm()))
+        expected = max(0.0, float(trunk[2] / trunk.norm())) ** 2 * value
+        measured = plumb_shins(BodyOutput(None, camera[None]), up, torch.tensor([cut]))
+        return float(measured[0]), expected
+
+    bent, expected = cost(0.0, 60.0, [True, False])
+    assert bent == pytest.approx(expected, rel=1e-4, abs=1e-5)
+    assert 0.4 < bent < 0.6  # a shin 60 degrees off plumb
+    assert cost(0.0, 60.0, [False, False])[0] == 0.0
+    straight = cost(0.0, 0.0, [True, True])
+    assert straight[0] == pytest.approx(straight[1], rel=1e-4, abs=1e-5)
+    assert straight[0] < 0.05 * bent
+    lying = cost(90.0, 60.0, [True, True])
+    assert lying[0] == pytest.approx(lying[1], rel=1e-4, abs=1e-5) and lying[0] < 0.01
+
+
+def test_plumb_shins_act_only_on_cut_legs(body):
+    """In the fitter's terms the plumb-shin term is the configured weight times
+    losses.plumb_shins on the frames with a leg cut off below the knee, and exactly 0 on
+    the others (whose objective is then the one without the term)."""
+    from prox_engine.losses import plumb_shins
+
+    cam2world = tilted_camera()
+    config = load_config("prox")
+    assert config.plumb_shin_weight > 0
+    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    _, camera = _with_shin_bent(body, cam2world, 0.0, 60.0)
+    out = BodyOutput(None, camera[None].expand(2, -1, -1))
+    conf = torch.full((2, N_KEYPOINTS), 0.9)
+    conf[1, [11, 22, 23, 24]] = 0.0
+    params = body.init_params(2)
+    target = CAMERA.project(out.keypoints)[..., :2]
+    terms = fitter._terms(config.stages[0], out, params, target, conf, [None, None], None)
+    assert float(terms["plumb_shins"][0]) == 0.0
+    expected = config.plumb_shin_weight * plumb_shins(out, fitter.up,
+                                                      torch.tensor([[True, False]] * 2))
+    assert float(terms["plumb_shins"][1]) == pytest.approx(float(expected[1]), rel=1e-5)
+    assert float(terms["plumb_shins"][1]) > 0.3 * config.plumb_shin_weight
+
+
 @pytest.mark.parametrize("yaw", [0.0, 1.0])
 def test_initialisation_is_upright_at_the_true_depth(body, yaw):
     """Seen by a tilted, rolled camera, a standing person (facing it, or turned by about
