@@ -551,9 +551,8 @@ class Fitter:
             terms["upright"] = cfg.upright_weight * ankle_seen(conf) * losses.upright(
                 out, self.up, cfg.upright_rho)
         if cfg.plumb_shin_weight > 0:
-            cut = cut_legs(conf)
-            terms["plumb_shins"] = (cfg.plumb_shin_weight * losses.plumb_shins(out, self.up, cut)
-                                    if bool(cut.any()) else conf.new_zeros(len(conf)))
+            terms["plumb_shins"] = cfg.plumb_shin_weight * losses.plumb_shins(
+                out, self.up, cut_legs(conf))
         if w.get("self_penetration", 0) > 0:
             terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
         if w.get("penetration", 0) > 0:

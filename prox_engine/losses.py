@@ -26,11 +26,16 @@ def keypoint_data(out: BodyOutput, camera: Camera, target: torch.Tensor,
     return (weight * gmof(squared, rho)).sum(1)
 
 
+def _trunk(out: BodyOutput) -> torch.Tensor:
+    """(B, 3) the trunk: BODY_25 mid-hip to neck."""
+    return out.keypoints[:, NECK] - out.keypoints[:, MID_HIP]
+
+
 def upright(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
     """Robust squared angle (B,) between the trunk (BODY_25 mid-hip to neck) and world
     ``up`` (3,) in camera coordinates: standing and sitting people hold their trunks near
     vertical, and a trunk leaning toward or away from the camera projects almost alike."""
-    trunk = out.keypoints[:, NECK] - out.keypoints[:, MID_HIP]
+    trunk = _trunk(out)
     angle = torch.atan2(torch.linalg.cross(trunk, up.expand_as(trunk)).norm(dim=-1),
                         trunk @ up)
     return gmof(angle ** 2, rho)
@@ -42,11 +47,13 @@ def plumb_shins(out: BodyOutput, up: torch.Tensor, cut: torch.Tensor) -> torch.T
     camera coordinates, 0 straight down, 2 straight up, summed over those legs. Weighted
     by the square of the trunk's uprightness (the cosine of mid-hip to neck with up,
     clamped at 0, held constant): a standing or seated person's lower legs hang about
-    plumb, a lying one's do not."""
+    plumb, a lying one's do not. Exactly 0, and nothing computed, without such a leg."""
     keypoints = out.keypoints
-    trunk = keypoints[:, NECK] - keypoints[:, MID_HIP]
-    upright = ((trunk @ up) / trunk.norm(dim=-1).clamp_min(1e-9)).clamp(min=0).detach()
     cost = keypoints.new_zeros(len(keypoints))
+    if not bool(cut.any()):
+        return cost
+    trunk = _trunk(out)
+    upright = ((trunk @ up) / trunk.norm(dim=-1).clamp_min(1e-9)).clamp(min=0).detach()
     for leg, (knee, foot) in enumerate(SHINS):
         shin = keypoints[:, foot[0]] - keypoints[:, knee]
         cost = cost + cut[:, leg] * (1 + (shin @ up) / shin.norm(dim=-1).clamp_min(1e-9))

@@ -91,14 +91,26 @@ def test_world_up_in_camera_coordinates():
     assert float((up - viewing_axis).norm()) > 0.5
 
 
-def _leaning(body, cam2world: np.ndarray, degrees: float) -> BodyOutput:
-    """A mean standing body on the floor at the camera's target, its whole body tipped by
-    ``degrees`` about the world x axis, posed in the camera frame."""
+def _tipped(body, cam2world: np.ndarray, tip_degrees: float, bend_degrees: float = 0.0
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """World and camera-frame BODY_25 keypoints of a mean standing body on the floor at the
+    camera's target, tipped by ``tip_degrees`` about the world x axis, its right shin then
+    turned by ``bend_degrees`` about the world x axis at the knee."""
     out, shift = _placed(body, body.init_params(1), cam2world)
-    tip = torch.tensor(Rotation.from_euler("x", degrees, degrees=True).as_matrix(),
+    tip = torch.tensor(Rotation.from_euler("x", tip_degrees, degrees=True).as_matrix(),
                        dtype=torch.float32)
-    keypoints = (out.keypoints[0] + shift) @ tip.T
-    return BodyOutput(None, world_to_camera(keypoints, cam2world)[None])
+    world = (out.keypoints[0] + shift) @ tip.T
+    if bend_degrees:
+        bend = torch.tensor(Rotation.from_euler("x", bend_degrees, degrees=True).as_matrix(),
+                            dtype=torch.float32)
+        world[11] = world[10] + (world[11] - world[10]) @ bend.T  # right knee, ankle
+    return world, world_to_camera(world, cam2world)
+
+
+def _leaning(body, cam2world: np.ndarray, degrees: float) -> BodyOutput:
+    """A mean standing body tipped by ``degrees`` (:func:`_tipped`), posed in the camera
+    frame."""
+    return BodyOutput(None, _tipped(body, cam2world, degrees)[1][None])
 
 
 def test_upright_term_measures_the_trunk_against_world_up(body):
@@ -138,21 +150,6 @@ def test_upright_term_spares_frames_cut_off_at_the_knees(body):
                                           [None, None], None)
 
 
-def _with_shin_bent(body, cam2world: np.ndarray, tip_degrees: float, bend_degrees: float
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """World and camera-frame BODY_25 keypoints of a mean standing body on the floor,
-    tipped by ``tip_degrees`` about the world x axis, its right shin then turned by
-    ``bend_degrees`` about the world x axis at the knee."""
-    out, shift = _placed(body, body.init_params(1), cam2world)
-    tip = torch.tensor(Rotation.from_euler("x", tip_degrees, degrees=True).as_matrix(),
-                       dtype=torch.float32)
-    world = (out.keypoints[0] + shift) @ tip.T
-    bend = torch.tensor(Rotation.from_euler("x", bend_degrees, degrees=True).as_matrix(),
-                        dtype=torch.float32)
-    world[11] = world[10] + (world[11] - world[10]) @ bend.T  # right knee, ankle
-    return world, world_to_camera(world, cam2world)
-
-
 def test_cut_off_shins_are_drawn_plumb(body):
     """Seen by a tilted, rolled, off-centre camera, a leg reported down to the knee and
     no further costs 1 + the cosine of its shin with world up, times the trunk's
@@ -172,7 +169,7 @@ def test_cut_off_shins_are_drawn_plumb(body):
                                        [True, True]]
 
     def cost(tip: float, bend: float, cut: list[bool]) -> tuple[float, float]:
-        world, camera = _with_shin_bent(body, cam2world, tip, bend)
+        world, camera = _tipped(body, cam2world, tip, bend)
         trunk, value = world[1] - world[8], 0.0
         for leg, (knee, ankle) in enumerate([(10, 11), (13, 14)]):
             shin = world[ankle] - world[knee]
@@ -202,7 +199,7 @@ def test_plumb_shins_act_only_on_cut_legs(body):
     config = load_config("prox")
     assert config.plumb_shin_weight > 0
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
-    _, camera = _with_shin_bent(body, cam2world, 0.0, 60.0)
+    _, camera = _tipped(body, cam2world, 0.0, 60.0)
     out = BodyOutput(None, camera[None].expand(2, -1, -1))
     conf = torch.full((2, N_KEYPOINTS), 0.9)
     conf[1, [11, 22, 23, 24]] = 0.0
