@@ -1,6 +1,7 @@
 """The quantitative benchmark: generate scenes with ground-truth bodies, fit them with each
-configuration, and print a table like the paper's Table 1 (also written as JSON and
-Markdown under ``--out``).
+configuration, and print a table like the paper's Table 1, then one per scene kind and one
+per thing the generator's detector did to the frames (evaluate.CONDITIONS), also written
+as JSON and Markdown under ``--out``.
 
     .venv/bin/python -m benchmarks --seed 1 --frames 6 --out bench-seed1
     .venv/bin/python -m benchmarks --small          # the quick version the tests run
@@ -20,7 +21,7 @@ from prox_engine.config import load_config
 from prox_engine.output import atomic_write_text
 from prox_engine.pipeline import fit_recording
 
-from .evaluate import aggregate, evaluate_recording, truth_scene
+from .evaluate import CONDITIONS, aggregate, evaluate_recording, truth_scene
 from .generate import KINDS, make_benchmark
 
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
@@ -52,7 +53,8 @@ COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f
 def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         sdf_dim: int = 256, log=print) -> dict:
     """Generate the data, fit every recording with every configuration, evaluate; returns
-    {"settings", "overall": {config: metrics}, "per_kind": {kind: {config: metrics}}}."""
+    {"settings", "overall": {config: metrics}, "per_kind": {kind: {config: metrics}},
+    "per_condition": {condition: {config: metrics}}, "frames": {config: rows}}."""
     torch.set_num_threads(1)
     body = AnnyBody.load()
     data = out / "data"
@@ -81,6 +83,8 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         "overall": {c: aggregate(r) for c, r in rows.items()},
         "per_kind": {k: {c: aggregate([x for x in r if x["kind"] == k]) for c, r in rows.items()}
                      for k in kinds},
+        "per_condition": {d: {c: aggregate([x for x in r if x["condition"] == d])
+                              for c, r in rows.items()} for d in CONDITIONS},
         "frames": rows,
     }
 
@@ -96,7 +100,7 @@ def _cell(value, fmt: str) -> str:
 
 
 def markdown(result: dict) -> str:
-    """The overall table and one per scene kind, errors in mm."""
+    """The overall table, one per scene kind and one per detector condition, errors in mm."""
     header = "| config | " + " | ".join(c[1] for c in COLUMNS) + " |\n"
     header += "|---" * (len(COLUMNS) + 1) + "|\n"
 
@@ -115,6 +119,12 @@ def markdown(result: dict) -> str:
     text += table(result["overall"])
     for kind, metrics in result["per_kind"].items():
         text += f"\n### {kind}\n\n" + table(metrics)
+    total = next(m["frames"] for m in result["overall"].values() if m)
+    for name, metrics in result["per_condition"].items():
+        frames = next((m["frames"] for m in metrics.values() if m), 0)
+        if frames:
+            text += (f"\n### Detector: {name} ({frames} of {total} frames)\n\n"
+                     + table(metrics))
     return text
 
 

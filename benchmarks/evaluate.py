@@ -64,6 +64,22 @@ def frame_metrics(fit_vertices: np.ndarray, gt_vertices: np.ndarray, body: BodyM
     }
 
 
+# What the generator's detector did to a frame (benchmarks.detector), worst first: a frame
+# cut off below the knees counts as cut off whatever else happened to it, a blurred one
+# as blurred, and so on.
+CONDITIONS = ("cut off below the knees", "blurred", "sides swapped", "clean")
+
+
+def condition(errors: dict) -> str:
+    """The frame's entry of CONDITIONS, from its ``frame_errors`` in the truth's meta.json
+    (``{}``: clean)."""
+    if errors.get("truncated"):
+        return CONDITIONS[0]
+    if errors.get("blurred"):
+        return CONDITIONS[1]
+    return CONDITIONS[2] if errors.get("swapped") else CONDITIONS[3]
+
+
 def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel,
                        scene: Scene) -> list[dict]:
     """Metrics of every fitted frame of ``recording`` (``fitted`` = the ``--out`` folder)
@@ -80,8 +96,10 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
                             process=False)
         fit = np.asarray(mesh.vertices, dtype=np.float64)
         stats, _ = metrics.scene_stats(torch.as_tensor(fit, dtype=torch.float32), body, scene)
-        swapped = truth.get("frame_errors", {}).get(name, {}).get("swapped", [])
+        errors = truth.get("frame_errors", {}).get(name, {})
+        swapped = errors.get("swapped", [])
         rows.append({"frame": name, "seconds": frame["seconds"],
+                     "condition": condition(errors),
                      # the fit's own statistic: inside the scan as the fitter read it
                      "penetrating_share_as_given": frame["penetrating_share"],
                      "sides_right": set(frame.get("sides_swapped", [])) == set(swapped),

@@ -132,6 +132,26 @@ def test_small_benchmark_prox_beats_rgb(tmp_path):
     assert "| config | PJE | V2V | p.PJE | p.V2V |" in table and "| prox |" in table
     assert "pen. % as given" in table
     assert "| prox |" in run.stdout
+    # every frame counted under one detector condition, each condition with its table
+    counts = {name: m["prox"]["frames"] for name, m in result["per_condition"].items()
+              if m["prox"]}
+    assert sum(counts.values()) == prox["frames"], counts
+    assert all(f"### Detector: {name} ({n} of {prox['frames']} frames)" in table
+               for name, n in counts.items())
+
+
+def test_frames_are_told_apart_by_what_the_detector_did():
+    """The worst thing the detector did names a frame's condition: cut off below the knees
+    before blurred, blurred before swapped sides; nothing is clean."""
+    from benchmarks.evaluate import condition
+
+    assert condition({}) == "clean"
+    assert condition({"swapped": [], "blurred": False, "truncated": False}) == "clean"
+    assert condition({"swapped": ["legs"], "blurred": False, "truncated": False}) == (
+        "sides swapped")
+    assert condition({"swapped": ["arms"], "blurred": True, "truncated": False}) == "blurred"
+    assert condition({"swapped": ["legs"], "blurred": True, "truncated": True}) == (
+        "cut off below the knees")
 
 
 def test_speed_benchmark_counts_warm_started_frames_apart():
