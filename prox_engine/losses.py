@@ -53,11 +53,11 @@ def plumb_shins(out: BodyOutput, up: torch.Tensor, cut: torch.Tensor) -> torch.T
     if not bool(cut.any()):
         return cost
     trunk = _trunk(out)
-    upright = ((trunk @ up) / trunk.norm(dim=-1).clamp_min(1e-9)).clamp(min=0).detach()
+    uprightness = ((trunk @ up) / trunk.norm(dim=-1).clamp_min(1e-9)).clamp(min=0).detach()
     for leg, (knee, foot) in enumerate(SHINS):
         shin = keypoints[:, foot[0]] - keypoints[:, knee]
         cost = cost + cut[:, leg] * (1 + (shin @ up) / shin.norm(dim=-1).clamp_min(1e-9))
-    return upright ** 2 * cost
+    return uprightness ** 2 * cost
 
 
 def penetration_vertices(body: BodyModel, spacing: float, rest: torch.Tensor | None = None
