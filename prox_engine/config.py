@@ -197,9 +197,6 @@ class FitConfig:
     depth_rho: float = 0.05
     depth_max_points: int = 1500
     sequence_stages: list[int] = field(default_factory=lambda: [-1])
-    # L-BFGS iterations per call of every sequence stage (None: each stage's own): a
-    # warm-started frame starts near its answer, where a fit from scratch may need more.
-    sequence_max_iter: int | None = None
     batch_size: int = 1
     flip: bool = False  # mirror Kinect images and depth (not keypoints) as PROX does
     sdf_dim: int = 256

@@ -242,8 +242,6 @@ class Fitter:
                       for k, v in warm_start.items()}
             labels = self._closest_labelling(target, conf, previous_keypoints)
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
-            if cfg.sequence_max_iter:
-                stages = [replace(s, max_iter=cfg.sequence_max_iter) for s in stages]
             frozen_shape = True
         # Rows per frame fitted side by side (starts, then arm restarts, then leg
         # restarts), and when and how each frame keeps its best row: the scene's cost

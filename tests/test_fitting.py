@@ -497,28 +497,6 @@ def test_body_evaluations_are_counted_per_stage_and_frame(body):
     assert len(body._forward_pre_hooks) == 0
 
 
-def test_sequence_stages_take_the_sequence_iteration_budget(body):
-    """A warm-started fit (sequence mode) runs its stages with ``sequence_max_iter``
-    L-BFGS iterations a call instead of each stage's own; a fit from scratch keeps the
-    stage's."""
-    cam2world = tilted_camera()
-    _, keypoints = standing_person(body, cam2world)
-    frame = frame_of(keypoints)
-    stage = Stage("global", {"body": 1.0, "pose_prior": 30.0}, optimize_shape=False,
-                  max_iter=30)
-    config = FitConfig("short", [stage], max_calls=1, ftol=0.0, sequence_stages=[0])
-    start, _ = Fitter(body, CAMERA, config).initialise([frame])
-    start = {k: v[:1] for k, v in start.items()}  # the best start, far from the answer
-
-    def evaluations(sequence_max_iter: int | None, warm: bool) -> float:
-        config.sequence_max_iter = sequence_max_iter
-        result = Fitter(body, CAMERA, config).fit([frame], warm_start=start if warm else None)
-        return result[0].stage_evaluations["global"]
-
-    assert evaluations(3, warm=True) <= 5 < 10 < evaluations(None, warm=True)
-    assert evaluations(3, warm=False) == evaluations(None, warm=False) > 10
-
-
 def test_stage_reports_terms_at_the_accepted_point(body):
     """The losses a fit reports are the terms at its final parameters (not at the line
     search's last probe)."""
