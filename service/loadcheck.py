@@ -30,6 +30,10 @@ from .settings import Settings
 from .storage import zip_tree
 
 STALE_S = 30
+# Progress stages of a job at work (its scene, then the fit's stages): the kill lands in one
+# of them (a one-frame job spends a fraction of a second in any one stage, and the check
+# once polled for the body stage alone, missed it and waited forever).
+MID_FIT = ("initialise", "global", "body", "detail", "final", "scene", "contact")
 REDIS_DOWN_S = 5  # how long Redis stays down in the outage mid-run
 
 
@@ -67,8 +71,11 @@ def _kill_check(client: ApiClient, stack: LocalStack, archive: Path, whole_worke
                 ) -> dict:
     """Kill a job's work-horse (or its whole worker) mid-fit; time until it finishes."""
     job = client.submit(archive, config="prox")
-    while not (job["status"] == "running" and job["progress"]["stage"] == "body"):
-        time.sleep(0.2)
+    while not (job["status"] == "running" and job["progress"]["stage"] in MID_FIT):
+        if job["status"] not in ("queued", "running"):
+            raise RuntimeError(f"job {job['id']} ended ({job['status']}) before it was seen "
+                               "mid-fit")
+        time.sleep(0.05)
         job = client.job(job["id"])
     horse = int(job["worker"].rsplit(":", 1)[1])
     killed = time.monotonic()
