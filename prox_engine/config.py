@@ -137,6 +137,11 @@ class FitConfig:
     # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose
     # underside is the legs' guessed posture (pipeline._fit_fresh).
     floating_restart: bool = False
+    # A frame fitted from scratch whose fit takes the legs as swapped against the detector
+    # and ends more than this many px from its keypoints (as it labelled them) is fitted
+    # again with the labels as detected, and the fit nearer its keypoints is kept
+    # (pipeline._checked_swap); 0: never.
+    swap_check_px: float = 0.0
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -162,15 +162,41 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     144 mm). Not where the detector saw no ankle: the underside is then the legs'
     guessed posture, its gap no evidence against the fit, and the refit rests its own
     guessed legs on a surface at whatever depth that takes (seed 8's sitter, cut off at
-    the knees: refitted 26 % too far, 130 -> 772 mm)."""
+    the knees: refitted 26 % too far, 130 -> 772 mm). Then each whose fit takes the legs
+    as swapped against the detector and ends far from its keypoints is checked
+    (:func:`_checked_swap`)."""
     results = fitter.fit(frames)
-    if not fitter.config.floating_restart or fitter.scene is None:
-        return results
-    return [_less_floating(
-        fitter, result, lambda: fitter.fit([frame], start=0 if result.start else 1)[0],
-        RESTART_DATA, ("", "first", "from the other start", "refit"))
-        if result.start is not None and ankle_seen(frame.keypoints.data[:, 2]) else result
-        for frame, result in zip(frames, results)]
+    if fitter.config.floating_restart and fitter.scene is not None:
+        results = [_less_floating(
+            fitter, result, lambda: fitter.fit([frame], start=0 if result.start else 1)[0],
+            RESTART_DATA, ("", "first", "from the other start", "refit"))
+            if result.start is not None and ankle_seen(frame.keypoints.data[:, 2]) else result
+            for frame, result in zip(frames, results)]
+    return [_checked_swap(fitter, frame, result) for frame, result in zip(frames, results)]
+
+
+def _checked_swap(fitter: Fitter, frame: Frame, result: FitResult) -> FitResult:
+    """``result``, unless it takes the legs as swapped against the detector and ends over
+    ``config.swap_check_px`` from the keypoints as it labelled them: then the frame is
+    fitted again with the labels as detected, and the fit nearer its keypoints is kept.
+    The start choice compares labellings two stages in, by objective and scene cost; the
+    finished fits tell them apart better (seed 54's kneeler, legs taken as swapped: 11.4
+    px and 568 mm off, as detected 7.0 px and 65 mm)."""
+    limit = fitter.config.swap_check_px
+    if limit <= 0 or "legs" not in result.swapped:
+        return result
+    error = _error_px(fitter, result, frame)
+    if error <= limit:
+        return result
+    as_detected = Fitter(fitter.body, fitter.camera, replace(fitter.config, swap_sides=False),
+                         fitter.scene, fitter.on_stage).fit([frame])[0]
+    other = _error_px(fitter, as_detected, frame)
+    kept, dropped = (as_detected, result) if other < error else (result, as_detected)
+    kept.events.append(f"legs fitted as swapped, {error:.1f} px off; fitted again as "
+                       f"detected, {other:.1f} px; kept the "
+                       + ("fit as detected" if kept is as_detected else "swapped fit"))
+    _discard(kept, dropped)
+    return kept
 
 
 def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: float

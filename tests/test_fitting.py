@@ -473,6 +473,35 @@ def test_a_floating_fit_cut_off_at_the_knees_is_not_fitted_again(body):
     assert "discarded_fit" not in fit.stage_evaluations
 
 
+def test_a_fit_with_the_legs_swapped_far_from_its_keypoints_is_checked(body):
+    """A fit that takes the legs as swapped against the detector and ends over
+    ``swap_check_px`` from its keypoints is fitted again with the labels as detected, and
+    the fit nearer its keypoints is kept (here the swap, which the detector did make),
+    with an event and the dropped fit's cost; under the limit, or with the legs as
+    detected, the fit stands alone."""
+    from prox_engine.keypoints import side_swap
+    from prox_engine.pipeline import _fit_fresh
+
+    cam2world = tilted_camera()
+    _, keypoints = standing_person(body, cam2world, yaw=0.4)
+    swapped = frame_of(keypoints)
+    swapped.keypoints.data[:] = swapped.keypoints.data[side_swap(("legs",))]
+    config = load_config("rgb")
+
+    def fit(frame: Frame, limit: float):
+        config.swap_check_px = limit
+        return _fit_fresh(Fitter(body, CAMERA, config), [frame])[0]
+
+    checked = fit(swapped, 1e-3)
+    assert checked.swapped == ["legs"]
+    assert any("fitted again as detected" in e and "kept the swapped fit" in e
+               for e in checked.events), checked.events
+    assert checked.stage_evaluations["discarded_fit"] > 0
+    for alone in (fit(swapped, 0.0), fit(swapped, 1e3), fit(frame_of(keypoints), 1e-3)):
+        assert "discarded_fit" not in alone.stage_evaluations
+        assert not any("fitted again as detected" in e for e in alone.events)
+
+
 def test_body_evaluations_are_counted_per_stage_and_frame(body):
     """The profile counts every body row evaluated (a batch of B counts B), per stage and
     per frame, as an independent hook on the body sees them; and the hook is removed."""
