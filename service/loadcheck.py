@@ -30,10 +30,6 @@ from .settings import Settings
 from .storage import zip_tree
 
 STALE_S = 30
-# Progress stages of a job at work (its scene, then the fit's stages): the kill lands in one
-# of them (a one-frame job spends a fraction of a second in any one stage, and the check
-# once polled for the body stage alone, missed it and waited forever).
-MID_FIT = ("initialise", "global", "body", "detail", "final", "scene", "contact")
 REDIS_DOWN_S = 5  # how long Redis stays down in the outage mid-run
 
 
@@ -69,9 +65,15 @@ def _check_results(client: ApiClient, job_id: str) -> int:
 
 def _kill_check(client: ApiClient, stack: LocalStack, archive: Path, whole_worker: bool
                 ) -> dict:
-    """Kill a job's work-horse (or its whole worker) mid-fit; time until it finishes."""
+    """Kill a job's work-horse (or its whole worker) mid-fit; time until it finishes. The
+    kill lands in any stage of the job's work (loading its scene, the start search, the
+    configuration's stages): a one-frame job spends a fraction of a second in any one, and
+    a poll for one stage alone can miss it."""
+    from prox_engine.config import load_config
+
+    at_work = {"scene", "initialise", *(stage.name for stage in load_config("prox").stages)}
     job = client.submit(archive, config="prox")
-    while not (job["status"] == "running" and job["progress"]["stage"] in MID_FIT):
+    while not (job["status"] == "running" and job["progress"]["stage"] in at_work):
         if job["status"] not in ("queued", "running"):
             raise RuntimeError(f"job {job['id']} ended ({job['status']}) before it was seen "
                                "mid-fit")
