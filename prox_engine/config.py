@@ -171,6 +171,13 @@ class FitConfig:
     # more than 1 cm inside the true scan rose 0.9 -> 2.1, 0.09 -> 0.21 and 0.04 -> 0.78 %;
     # 2 cm is `prox-soft`.
     penetration_tolerance: float = 0.0
+    # Depth (m) inside a surface at which the scene stages' contact term has the flesh a
+    # body rests on (buttocks, thighs, back: losses.SOFT_PARTS) touch it, and beyond which
+    # their penetration term counts it (added to penetration_tolerance): flesh and
+    # cushions give under a seated or lying person, whose unloaded surface then lies that
+    # deep in the scan; the feet and hands stay on it. 0: on the surface, as the paper's
+    # terms.
+    soft_sink: float = 0.0
     # The penetration term reads one body vertex per cell of a grid this size (m) over the
     # standing body, counted for the cell's vertices (losses.penetration_vertices): anny's
     # 13348 scene vertices become 6424, the face, hands and feet thinned, the trunk and

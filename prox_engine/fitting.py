@@ -147,6 +147,9 @@ class Fitter:
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
+        # How deep each vertex of the scene terms rests inside a surface it touches
+        # (config.soft_sink) and may enter it unpenalised (with config.penetration_tolerance)
+        self.contact_sink = self.penetration_tolerance = None
         self.toes, self.scene_subset, self.penetration_vertices, self.contact_normals = (
             None, None, None, None)
         if needs_scene:
@@ -157,6 +160,12 @@ class Fitter:
                                          rest.keypoints[0, ANKLES])
             self.scene_subset, self.penetration_vertices, self.contact_normals = (
                 self._scene_vertices(rest.vertices[0]))
+            sink = losses.sink_depths(body.contact_parts, body.num_vertices, config.soft_sink)
+            if self.penetration_vertices is not None:
+                self.penetration_tolerance = config.penetration_tolerance + sink[
+                    self.scene_subset.ids[self.penetration_vertices[0]]]
+            if self.contact_normals is not None:
+                self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self.evaluations = 0  # body rows evaluated in the current fit
 
@@ -558,11 +567,11 @@ class Fitter:
         if w.get("penetration", 0) > 0:
             terms["penetration"] = w["penetration"] * losses.penetration(
                 self._scene_view(out), *self.penetration_vertices, self.scene,
-                cfg.penetration_tolerance)
+                self.penetration_tolerance)
         if w.get("contact", 0) > 0 and self.contact_normals is not None:
             terms["contact"] = w["contact"] * losses.contact(
                 self._scene_view(out), self.scene, self.contact_normals, cfg.contact_rho,
-                cfg.contact_max_angle, cfg.contact_max_distance)
+                cfg.contact_max_angle, cfg.contact_max_distance, self.contact_sink)
         if w.get("depth", 0) > 0 and any(d is not None for d in depth):
             terms["depth"] = w["depth"] * losses.depth_data(out, body, depth, cfg.depth_rho)
         if w.get("temporal", 0) > 0 and previous is not None:

@@ -78,15 +78,18 @@ def penetration_vertices(body: BodyModel, spacing: float, rest: torch.Tensor | N
 
 
 def penetration(out: BodyOutput, ids: torch.Tensor, weights: torch.Tensor, scene: Scene,
-                tolerance: float = 0.0) -> torch.Tensor:
+                tolerance: float | torch.Tensor = 0.0) -> torch.Tensor:
     """Penetration energy (B,) of the body vertices ``ids``, each counted ``weights``
-    times (:func:`penetration_vertices`)."""
+    times (:func:`penetration_vertices`) and tolerated ``tolerance`` deep (one for all, or
+    one per vertex)."""
     return penetration_energy(out.vertices[:, ids], scene, tolerance, weights)
 
 
-def penetration_energy(points: torch.Tensor, scene: Scene, tolerance: float = 0.0,
+def penetration_energy(points: torch.Tensor, scene: Scene,
+                       tolerance: float | torch.Tensor = 0.0,
                        weights: torch.Tensor | None = None) -> torch.Tensor:
-    """Sum over points (B, N, 3) more than ``tolerance`` inside the scene, each counted
+    """Sum over points (B, N, 3) more than ``tolerance`` ((N,) or one for all) inside the
+    scene, each counted
     ``weights`` (N,) times (once by default), of d^2 (the paper's ||d n||^2) plus |d| (so
     that shallow penetrations still get a push), d being the depth beyond the tolerance:
     exact (from the triangles) within two voxels of a surface, where furniture thinner
@@ -97,24 +100,48 @@ def penetration_energy(points: torch.Tensor, scene: Scene, tolerance: float = 0.
     return (energy if weights is None else energy * weights).sum(-1)
 
 
+# The contact parts of flesh a body rests on (a seated body's buttocks and thighs, a lying
+# one's back): they and the cushions under them give, so that a body resting on them lies a
+# little inside the scanned surface there (FitConfig.soft_sink), its feet and hands on it.
+SOFT_PARTS = ("back", "gluteus", "thighs")
+
+
+def sink_depths(contact_parts: dict[str, torch.Tensor], count: int, sink: float
+                ) -> torch.Tensor:
+    """(``count``,) how deep (m) each body vertex rests inside a surface it touches:
+    ``sink`` for the vertices of the SOFT_PARTS (``contact_parts``: part -> vertex
+    indices), 0 for the others."""
+    depths = torch.zeros(count)
+    for part in SOFT_PARTS:
+        if part in contact_parts:
+            depths[contact_parts[part]] = sink
+    return depths
+
+
 def contact(out: BodyOutput, scene: Scene, normals: VertexNormals, rho: float,
-            max_angle_deg: float, max_distance: float) -> torch.Tensor:
-    """Contact energy of the body's contact vertices (``normals.ids``), (B,)."""
+            max_angle_deg: float, max_distance: float, sink: torch.Tensor | None = None
+            ) -> torch.Tensor:
+    """Contact energy of the body's contact vertices (``normals.ids``, each touching
+    ``sink`` deep: :func:`contact_distances`), (B,)."""
     with torch.no_grad():  # the normals only choose which vertices qualify
         facing = normals(out.vertices)
     return contact_energy(out.vertices[:, normals.ids], facing, scene, rho, max_angle_deg,
-                          max_distance)
+                          max_distance, sink)
 
 
 def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
-                      max_angle_deg: float, max_distance: float
+                      max_angle_deg: float, max_distance: float,
+                      sink: torch.Tensor | None = None
                       ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Distance to the scene surface (|SDF|) of points (..., N, 3) with outward body
-    normals, and which of them qualify for contact (no gradient): within ``max_distance``
-    of the surface with the normal facing it (within ``max_angle_deg`` of the opposite of
-    the SDF gradient). The SDF makes this one grid lookup per point instead of a
-    nearest-triangle search, exact on planes and close to it elsewhere."""
-    dist = scene.signed_distance(points).abs()
+    """Distance to contact of points (..., N, 3) with outward body normals, and which of
+    them qualify for contact (no gradient): within ``max_distance`` of it with the normal
+    facing the surface (within ``max_angle_deg`` of the opposite of the SDF gradient).
+    A point touches on the scene's surface (|SDF|), or ``sink`` (N,) metres inside it
+    (|SDF + sink|: flesh and cushions that give). The SDF makes this one grid lookup per
+    point instead of a nearest-triangle search, exact on planes and close to it
+    elsewhere."""
+    signed = scene.signed_distance(points)
+    dist = (signed if sink is None else signed + sink).abs()
     valid = dist.detach() < max_distance
     near = valid.nonzero(as_tuple=True)  # the facing test (six SDF lookups) only where near
     facing = -(scene.world_normals(normals[near]) * scene.sdf_normals(points[near].detach())
@@ -124,11 +151,12 @@ def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
 
 
 def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rho: float,
-                   max_angle_deg: float, max_distance: float) -> torch.Tensor:
-    """Robust distance to the scene surface of the points (B, N, 3) that qualify for
-    contact (:func:`contact_distances`), averaged over those points as in PROX; 0 when
-    none qualifies."""
-    dist, valid = contact_distances(points, normals, scene, max_angle_deg, max_distance)
+                   max_angle_deg: float, max_distance: float,
+                   sink: torch.Tensor | None = None) -> torch.Tensor:
+    """Robust distance to contact of the points (B, N, 3) that qualify for it
+    (:func:`contact_distances`, touching ``sink`` deep), averaged over those points as in
+    PROX; 0 when none qualifies."""
+    dist, valid = contact_distances(points, normals, scene, max_angle_deg, max_distance, sink)
     robust = gmof(dist ** 2, rho) / rho ** 2
     return (robust * valid).sum(1) / valid.sum(1).clamp_min(1)
 

@@ -149,6 +149,27 @@ def test_penetration_tolerance_lets_a_body_sink_into_a_cushion():
     assert abs(excess - (0.03 ** 2 + 0.03)) < 0.005
 
 
+def test_the_flesh_a_body_rests_on_touches_and_penetrates_below_the_surface():
+    """With a sink depth (flesh and cushions that give), a point 2 cm inside a floor
+    touches it and penetrates nothing, where one on the surface is 2 cm from touching;
+    the other points (sink 0) touch on the surface and penetrate below it, as before."""
+    scene = _scene(plane_mesh())
+    points = torch.tensor([[[0.2, 0.1, -0.02], [0.3, 0.1, 0.0]]])
+    up = torch.tensor([0.0, 0.0, -1.0]).expand(1, 2, 3)  # facing the floor
+    sink = torch.tensor([0.02, 0.02])
+    touching = contact_energy(points[:, :1], up[:, :1], scene, 0.05, 45, 0.15, sink[:1])
+    on_top = contact_energy(points[:, 1:], up[:, 1:], scene, 0.05, 45, 0.15, sink[1:])
+    assert touching.item() < 1e-3 < on_top.item()
+    assert contact_energy(points[:, :1], up[:, :1], scene, 0.05, 45, 0.15).item() > 1e-3
+    assert contact_energy(points[:, 1:], up[:, 1:], scene, 0.05, 45, 0.15).item() < 1e-3
+    inside = torch.tensor([[[0.2, 0.1, -0.015], [0.3, 0.1, -0.015]]])
+    each = penetration_energy(inside, scene, tolerance=torch.tensor([0.02, 0.0]),
+                              weights=torch.tensor([1.0, 0.0])).item()
+    other = penetration_energy(inside, scene, tolerance=torch.tensor([0.02, 0.0]),
+                               weights=torch.tensor([0.0, 1.0])).item()
+    assert each == 0 and other > 0
+
+
 def test_penetration_inside_a_slab_thinner_than_a_voxel_pushes_out():
     """A 2 cm slab on a 10 cm grid: the grid misses it, the exact band finds the point
     inside and pushes it out through the nearer face; points outside cost nothing."""
