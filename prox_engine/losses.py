@@ -89,11 +89,10 @@ def penetration_energy(points: torch.Tensor, scene: Scene,
                        tolerance: float | torch.Tensor = 0.0,
                        weights: torch.Tensor | None = None) -> torch.Tensor:
     """Sum over points (B, N, 3) more than ``tolerance`` ((N,) or one for all) inside the
-    scene, each counted
-    ``weights`` (N,) times (once by default), of d^2 (the paper's ||d n||^2) plus |d| (so
-    that shallow penetrations still get a push), d being the depth beyond the tolerance:
-    exact (from the triangles) within two voxels of a surface, where furniture thinner
-    than a voxel would otherwise be missed, else from the grid."""
+    scene, each counted ``weights`` (N,) times (once by default), of d^2 (the paper's
+    ||d n||^2) plus |d| (so that shallow penetrations still get a push), d being the depth
+    beyond the tolerance: exact (from the triangles) within two voxels of a surface, where
+    furniture thinner than a voxel would otherwise be missed, else from the grid."""
     depth = scene.penetration_depth(points, exact_band=2 * scene.sdf.voxel_size)
     depth = torch.relu(depth - tolerance)
     energy = depth ** 2 + depth
