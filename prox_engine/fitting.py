@@ -160,7 +160,8 @@ class Fitter:
                                          rest.keypoints[0, ANKLES])
             self.scene_subset, self.penetration_vertices, self.contact_normals = (
                 self._scene_vertices(rest.vertices[0]))
-            sink = losses.sink_depths(body.contact_parts, body.num_vertices, config.soft_sink)
+            sink = config.soft_sink * losses.part_vertices(body.contact_parts,
+                                                           losses.SOFT_PARTS, body.num_vertices)
             if self.penetration_vertices is not None:
                 self.penetration_tolerance = config.penetration_tolerance + sink[
                     self.scene_subset.ids[self.penetration_vertices[0]]]

@@ -105,16 +105,15 @@ def penetration_energy(points: torch.Tensor, scene: Scene,
 SOFT_PARTS = ("back", "gluteus", "thighs")
 
 
-def sink_depths(contact_parts: dict[str, torch.Tensor], count: int, sink: float
-                ) -> torch.Tensor:
-    """(``count``,) how deep (m) each body vertex rests inside a surface it touches:
-    ``sink`` for the vertices of the SOFT_PARTS (``contact_parts``: part -> vertex
-    indices), 0 for the others."""
-    depths = torch.zeros(count)
-    for part in SOFT_PARTS:
+def part_vertices(contact_parts: dict[str, torch.Tensor], parts: tuple[str, ...],
+                  count: int) -> torch.Tensor:
+    """(``count``,) bool: the vertices of those of ``parts`` the body has among its
+    ``contact_parts`` (part -> vertex indices)."""
+    mask = torch.zeros(count, dtype=torch.bool)
+    for part in parts:
         if part in contact_parts:
-            depths[contact_parts[part]] = sink
-    return depths
+            mask[contact_parts[part]] = True
+    return mask
 
 
 def contact(out: BodyOutput, scene: Scene, normals: VertexNormals, rho: float,

@@ -19,7 +19,7 @@ from collections.abc import Callable
 import torch
 
 from .keypoints import HIPS, SHINS
-from .losses import contact_distances, gmof
+from .losses import contact_distances, gmof, part_vertices
 from .scene import Scene
 
 SCALES = torch.exp(torch.linspace(math.log(0.7), math.log(1.4), 97))
@@ -122,11 +122,7 @@ def toe_vertices(parts: list[str], rest: torch.Tensor, ankles: torch.Tensor) -> 
 
 def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> torch.Tensor:
     """(``count``,) bool: the contact vertices of the parts that can carry a body."""
-    mask = torch.zeros(count, dtype=torch.bool)
-    for part in CARRYING_PARTS:
-        if part in contact_parts:
-            mask[contact_parts[part]] = True
-    return mask
+    return part_vertices(contact_parts, CARRYING_PARTS, count)
 
 
 @torch.no_grad()
