@@ -34,7 +34,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-no-knee-restarts",
            "prox-no-facing", "prox-no-upright", "prox-free-cut-shins", "prox-faint-legs-in-view",
            "prox-scene-translates", "prox-no-scene-guard",
-           "prox-no-floating-restart", "prox-unchecked-swaps", "prox-no-give",
+           "prox-no-floating-restart", "prox-unchecked-swaps", "prox-no-give", "prox-unlevelled",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",
            "prox", "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,

@@ -55,6 +55,8 @@ MESH_TERMS = (*SCENE_TERMS, "depth")
 # Priors that measure how far a posture is from the model's rest pose, which the start
 # choice may leave out (FitConfig.start_choice_priors).
 POSTURE_PRIORS = ("pose_prior", "bending")
+# Terms that shape a fit but never rank candidates (FitConfig.level_weight).
+UNRANKED = ("level",)
 
 
 @dataclass
@@ -409,7 +411,8 @@ class Fitter:
         :meth:`_scale_search` reads them);
         only the rows ``tried`` ((rows,) bool; None: all) compete, and only theirs are
         searched."""
-        score = sum(v for k, v in terms.items() if priors or k not in POSTURE_PRIORS)
+        score = sum(v for k, v in terms.items()
+                    if (priors or k not in POSTURE_PRIORS) and k not in UNRANKED)
         rows = torch.arange(len(score)) if tried is None else tried.nonzero().flatten()
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
             cost = self._scale_search({k: v[rows] for k, v in params.items()},
@@ -560,6 +563,8 @@ class Fitter:
         if cfg.upright_weight > 0:
             terms["upright"] = cfg.upright_weight * ankle_seen(conf) * losses.upright(
                 out, self.up, cfg.upright_rho)
+        if cfg.level_weight > 0:
+            terms["level"] = cfg.level_weight * losses.level(out, self.up, cfg.level_rho)
         if cfg.plumb_shin_weight > 0:
             terms["plumb_shins"] = cfg.plumb_shin_weight * losses.plumb_shins(
                 out, self.up, cut_legs(conf))

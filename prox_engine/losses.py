@@ -35,10 +35,25 @@ def upright(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
     """Robust squared angle (B,) between the trunk (BODY_25 mid-hip to neck) and world
     ``up`` (3,) in camera coordinates: standing and sitting people hold their trunks near
     vertical, and a trunk leaning toward or away from the camera projects almost alike."""
+    return gmof(_trunk_angle(out, up) ** 2, rho)
+
+
+def level(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
+    """A reward (B,) for a trunk lying level: -rho^2 (1 - (e / rho)^2)^2 for a trunk
+    (BODY_25 mid-hip to neck) ``e`` radians from the horizontal, ~e^2 - rho^2 near 0,
+    exactly 0 with no gradient from ``rho`` on: a mattress holds a lying trunk level, while
+    a trunk lying along the camera's rays projects almost alike pitched up toward the
+    camera. Upright, seated and reclining trunks (40 degrees or more) neither pay nor
+    feel it, so their fits do not change at all. ``up`` (3,) is world up in camera
+    coordinates."""
+    off_level = ((_trunk_angle(out, up) - torch.pi / 2) / rho).square().clamp(max=1.0)
+    return -rho ** 2 * (1 - off_level).square()
+
+
+def _trunk_angle(out: BodyOutput, up: torch.Tensor) -> torch.Tensor:
+    """(B,) the angle (radians, 0 to pi) between the trunk and world ``up`` (3,)."""
     trunk = _trunk(out)
-    angle = torch.atan2(torch.linalg.cross(trunk, up.expand_as(trunk)).norm(dim=-1),
-                        trunk @ up)
-    return gmof(angle ** 2, rho)
+    return torch.atan2(torch.linalg.cross(trunk, up.expand_as(trunk)).norm(dim=-1), trunk @ up)
 
 
 def plumb_shins(out: BodyOutput, up: torch.Tensor, cut: torch.Tensor) -> torch.Tensor:

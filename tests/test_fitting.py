@@ -131,6 +131,41 @@ def test_upright_term_measures_the_trunk_against_world_up(body):
     assert tipped < lying < 3 * tipped
 
 
+def test_level_term_rewards_only_a_trunk_near_level(body):
+    """Seen by a tilted, rolled, off-centre camera: a lying trunk gets the whole reward,
+    one pitched 10 degrees out of level less of it, and a reclining (45 degrees) or
+    standing trunk nothing and no gradient, so their fits cannot change."""
+    from prox_engine.losses import level
+
+    cam2world = tilted_camera()
+    up = floor_scene(cam2world).up_in_camera()
+    rho = load_config("prox").level_rho
+    lying, pitched, reclined, standing = (
+        float(level(_leaning(body, cam2world, tip), up, rho)) for tip in (90.0, 80.0, 45.0, 0.0))
+    reward = lambda degrees: -rho ** 2 * (1 - (math.radians(degrees) / rho) ** 2) ** 2  # noqa
+    assert reward(0.0) <= lying < reward(2.0)  # the mean body's trunk: within 2 degrees
+    assert reward(8.0) <= pitched < reward(12.0)
+    assert lying < pitched < 0
+    assert reclined == 0.0 and standing == 0.0
+    out = _leaning(body, cam2world, 45.0)
+    out.keypoints.requires_grad_(True)
+    level(out, up, rho).sum().backward()
+    assert float(out.keypoints.grad.abs().max()) == 0.0
+
+
+def test_start_choice_does_not_rank_by_the_level_reward(body):
+    """Of two candidates, the one with the lower objective is kept even when the other
+    lies level: the reward shapes fits, it does not rank postures."""
+    config = load_config("prox")
+    fitter = Fitter(body, CAMERA, config, floor_scene(tilted_camera()))
+    terms = {"data": torch.tensor([100.0, 150.0]), "level": torch.tensor([0.0, -480.0])}
+    detected = torch.ones(2, 25)
+    assert fitter._best_rows(body.init_params(2), detected, terms, 2, by_scene=False) == [0]
+    del terms["level"]
+    terms["upright"] = torch.tensor([0.0, -480.0])  # a term that does rank
+    assert fitter._best_rows(body.init_params(2), detected, terms, 2, by_scene=False) == [1]
+
+
 def test_upright_term_spares_frames_cut_off_at_the_knees(body):
     """The upright term acts only where the detector saw an ankle: below the knees a
     truncated frame's legs are the fit's guess."""
