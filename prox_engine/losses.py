@@ -40,11 +40,11 @@ def upright(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
 
 def level(out: BodyOutput, up: torch.Tensor, rho: float) -> torch.Tensor:
     """A reward (B,) for a trunk lying level: -rho^2 (1 - (e / rho)^2)^2 for a trunk
-    (BODY_25 mid-hip to neck) ``e`` radians from the horizontal, ~e^2 - rho^2 near 0,
-    exactly 0 with no gradient from ``rho`` on: a mattress holds a lying trunk level, while
-    a trunk lying along the camera's rays projects almost alike pitched up toward the
-    camera. Upright, seated and reclining trunks (40 degrees or more) neither pay nor
-    feel it, so their fits do not change at all. ``up`` (3,) is world up in camera
+    (BODY_25 mid-hip to neck) ``e`` radians from the horizontal, about 2 e^2 - rho^2 near
+    0, exactly 0 with no gradient from ``rho`` on: a mattress holds a lying trunk level,
+    while a trunk lying along the camera's rays projects almost alike pitched up toward
+    the camera. Trunks ``rho`` or more from level (upright, seated, reclining) neither pay
+    nor feel it, so their fits do not change at all. ``up`` (3,) is world up in camera
     coordinates."""
     off_level = ((_trunk_angle(out, up) - torch.pi / 2) / rho).square().clamp(max=1.0)
     return -rho ** 2 * (1 - off_level).square()
