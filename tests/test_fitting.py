@@ -142,7 +142,10 @@ def test_level_term_rewards_only_a_trunk_near_level(body):
     rho = load_config("prox").level_rho
     lying, pitched, reclined, standing = (
         float(level(_leaning(body, cam2world, tip), up, rho)) for tip in (90.0, 80.0, 45.0, 0.0))
-    reward = lambda degrees: -rho ** 2 * (1 - (math.radians(degrees) / rho) ** 2) ** 2  # noqa
+
+    def reward(degrees: float) -> float:
+        return -rho ** 2 * (1 - (math.radians(degrees) / rho) ** 2) ** 2
+
     assert reward(0.0) <= lying < reward(2.0)  # the mean body's trunk: within 2 degrees
     assert reward(8.0) <= pitched < reward(12.0)
     assert lying < pitched < 0
