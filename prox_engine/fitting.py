@@ -150,8 +150,10 @@ class Fitter:
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
         # How deep each vertex of the scene terms rests inside a surface it touches
-        # (config.soft_sink) and may enter it unpenalised (with config.penetration_tolerance)
-        self.contact_sink = self.penetration_tolerance = None
+        # (config.soft_sink; None: on it) and may enter it unpenalised (one depth for all
+        # without a sink)
+        self.contact_sink: torch.Tensor | None = None
+        self.penetration_tolerance: float | torch.Tensor = config.penetration_tolerance
         self.toes, self.scene_subset, self.penetration_vertices, self.contact_normals = (
             None, None, None, None)
         if needs_scene:
@@ -162,13 +164,14 @@ class Fitter:
                                          rest.keypoints[0, ANKLES])
             self.scene_subset, self.penetration_vertices, self.contact_normals = (
                 self._scene_vertices(rest.vertices[0]))
-            sink = config.soft_sink * losses.part_vertices(body.contact_parts,
-                                                           losses.SOFT_PARTS, body.num_vertices)
-            if self.penetration_vertices is not None:
-                self.penetration_tolerance = config.penetration_tolerance + sink[
-                    self.scene_subset.ids[self.penetration_vertices[0]]]
-            if self.contact_normals is not None:
-                self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
+            if config.soft_sink > 0:
+                sink = config.soft_sink * losses.part_vertices(
+                    body.contact_parts, losses.SOFT_PARTS, body.num_vertices)
+                if self.penetration_vertices is not None:
+                    self.penetration_tolerance = config.penetration_tolerance + sink[
+                        self.scene_subset.ids[self.penetration_vertices[0]]]
+                if self.contact_normals is not None:
+                    self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self.evaluations = 0  # body rows evaluated in the current fit
 
