@@ -29,7 +29,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-no-support", "prox-no-visibility", "prox-no-axes", "prox-toes-counted",
            "prox-unpointed-feet", "prox-one-start",
            "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",
-           "prox-thighs-by-ankles", "prox-start-feet",
+           "prox-thighs-by-ankles", "prox-start-feet", "prox-sizeless-start",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-hip-restarts",
            "prox-no-knee-restarts",
            "prox-no-facing", "prox-no-upright", "prox-free-cut-shins", "prox-faint-legs-in-view",

@@ -86,6 +86,10 @@ class FitConfig:
     # With a scale search, the starts are compared by objective + this weight times the
     # search's cost (how badly the body meets the scene at its best scale, 0-2).
     start_scene_weight: float = 0.0
+    # ... plus the size prior at that scale (scale_search.size_prior): the keypoint stages
+    # hold the prior's mean body, so a start that meets the scene only scaled far from 1
+    # asks for an unusually small or large person.
+    start_choice_size: bool = False
     # Off, the starts are compared without the posture priors (pose and bending), which
     # measure how far a posture is from standing straight: a kneeling start paid for that
     # about ten times what a seated one did for the same keypoints and scene.

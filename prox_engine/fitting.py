@@ -20,7 +20,7 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LAB
                         LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, cut_legs,
                         side_swap, thighs_hidden)
 from .initialisation import best_start
-from .scale_search import (best_scale, carrying_vertices, toe_vertices,
+from .scale_search import (best_scale, carrying_vertices, size_prior, toe_vertices,
                            unseen_feet_on_kneeling_legs)
 from .scene import Scene
 
@@ -418,8 +418,10 @@ class Fitter:
                     if (priors or k not in POSTURE_PRIORS) and k not in UNRANKED)
         rows = torch.arange(len(score)) if tried is None else tried.nonzero().flatten()
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
-            cost = self._scale_search({k: v[rows] for k, v in params.items()},
-                                      detected[rows])[1]
+            scale, cost = self._scale_search({k: v[rows] for k, v in params.items()},
+                                             detected[rows])
+            if self.config.start_choice_size:
+                cost = cost + size_prior(scale)
             score = score.index_add(0, rows, self.config.start_scene_weight * cost)
         if tried is not None:
             score = score.masked_fill(~tried, torch.inf)

@@ -149,7 +149,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     part touches, nothing enters, the body rests on a surface): how well the body can meet
     the scene at all, comparable between bodies fitted at different sizes. Scales that
     cannot win are not evaluated (:func:`bounded_search`)."""
-    prior = PRIOR_WEIGHT * (torch.log(SCALES) / SCALE_SIGMA) ** 2 / 2
+    prior = size_prior(SCALES)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     carrying = carrying[sampled]
     counted = torch.ones_like(carrying) if toes is None else ~toes[sampled]
@@ -194,6 +194,11 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         best.append(SCALES[picked[pick]])
         lowest_cost.append(cost[pick])
     return torch.stack(best), torch.stack(lowest_cost)
+
+
+def size_prior(scales: torch.Tensor) -> torch.Tensor:
+    """The weak prior on body size of a body scaled by ``scales`` from its fitted size."""
+    return PRIOR_WEIGHT * (torch.log(scales) / SCALE_SIGMA) ** 2 / 2
 
 
 def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], rays: torch.Tensor,

@@ -169,6 +169,28 @@ def test_start_choice_does_not_rank_by_the_level_reward(body):
     assert fitter._best_rows(body.init_params(2), detected, terms, 2, by_scene=False) == [1]
 
 
+def test_start_choice_charges_the_size_a_start_needs_to_meet_the_scene(body):
+    """Two starts of one standing body under a tilted, rolled, off-centre camera, one on
+    the floor and one a third farther along the camera's rays: both meet the floor as
+    well at their best scale, but the far one only scaled by about 0.88 (a person 12 %
+    under the prior's size, which the keypoint stages hold). Ranked by its fit alone
+    (data 100 against 150) it wins; charged the size prior at that scale, it loses."""
+    cam2world = tilted_camera()
+    near = _posed_params(body, cam2world)
+    far = {**near, "transl": near["transl"] / 0.75}
+    params = {k: torch.cat([far[k], near[k]]) for k in near}
+    config = load_config("prox")
+    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    scale, cost = fitter._scale_search(params, torch.ones(2, 25))
+    assert float(scale[0]) < 0.9 and abs(float(scale[1]) - 1.0) < 0.02, scale
+    assert abs(float(cost[0] - cost[1])) < 0.01, cost  # the scene alone: a tie
+    terms = {"data": torch.tensor([100.0, 150.0])}
+    detected = torch.ones(2, 25)
+    assert fitter._best_rows(params, detected, terms, 2, by_scene=True) == [1]
+    config.start_choice_size = 0.0
+    assert fitter._best_rows(params, detected, terms, 2, by_scene=True) == [0]
+
+
 def test_upright_term_spares_frames_cut_off_at_the_knees(body):
     """The upright term acts only where the detector saw an ankle: below the knees a
     truncated frame's legs are the fit's guess."""
