@@ -411,7 +411,8 @@ class Fitter:
         objective (``terms``; without the POSTURE_PRIORS unless ``priors``) plus,
         ``by_scene`` with a scale search, ``start_scene_weight`` times how badly each can
         meet the scene at its best scale (the body joints ``detected`` (rows, 25) as
-        :meth:`_scale_search` reads them);
+        :meth:`_scale_search` reads them) and, with ``start_choice_size``, the size prior
+        at that scale;
         only the rows ``tried`` ((rows,) bool; None: all) compete, and only theirs are
         searched."""
         score = sum(v for k, v in terms.items()
