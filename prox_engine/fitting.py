@@ -92,13 +92,12 @@ class _Choice:
     ``after``, counting from 1) and by what (:meth:`Fitter._choose`): the objective,
     with the posture priors if ``priors``, the arms' keypoints if ``arms`` and the feet's
     but in the frames ``feet_left_out`` ((frames,) bool; None: none), plus the scene's
-    cost if ``by_scene``, among the rows ``tried`` ((rows,) bool; None: all)."""
+    cost if ``by_scene``."""
 
     after: int
     by_scene: bool = True
     priors: bool = True
     arms: bool = True
-    tried: torch.Tensor | None = None
     feet_left_out: torch.Tensor | None = None
 
 
@@ -131,6 +130,11 @@ class _Rows:
                      self.target[rows], self.conf[rows], self.detected[rows],
                      [self.depth[r] for r in rows],
                      [self.labels[r] for r in rows])
+
+
+def _sizes(keep: int | list[int], frames: int) -> list[int]:
+    """Rows per frame: ``keep`` for each of ``frames``, or each frame's own count."""
+    return [keep] * frames if isinstance(keep, int) else keep
 
 
 class Fitter:
@@ -278,6 +282,7 @@ class Fitter:
         rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
                      detected.repeat_interleave(keep, 0),
                      [f.depth_points for f in frames for _ in range(keep)], labels)
+        counts = [keep] * len(frames)  # rows per frame, from here on
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
             rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]
@@ -306,7 +311,7 @@ class Fitter:
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
-            if (before_scene is None and warm_start is None and final and keep == 1
+            if (before_scene is None and warm_start is None and final and max(counts) == 1
                     and self.config.scene_data_guard > 0 and self._scene_stage(stage)):
                 before_scene = ({k: v.detach().clone() for k, v in rows.params.items()}, final)
             t0, before = time.perf_counter(), self.evaluations
@@ -317,27 +322,30 @@ class Fitter:
             if stage.optimize_hands and has_hands:
                 free.append("hand_pose")
             final = self._run_stage(stage, rows.params, free, rows.target, rows.conf,
-                                    rows.depth, previous_keypoints, len(frames))
-            if keep > 1 and index + 1 == choice.after:
-                best = self._choose(choice, stage, rows, final, keep)
+                                    rows.depth, previous_keypoints, lbfgs.sized_groups(counts))
+            if max(counts) > 1 and index + 1 == choice.after:
+                best = self._choose(choice, stage, rows, final, counts)
                 if index + 1 == self.config.start_stages and warm_start is None:
                     starts = [None if s is None else r % keep for s, r in zip(starts, best)]
-                rows, final, keep = rows.taken(best), {k: v[best] for k, v in final.items()}, 1
+                rows, final = rows.taken(best), {k: v[best] for k, v in final.items()}
+                counts = [1] * len(frames)
             if (warm_start is None and self.config.arm_restarts
                     and index + 1 == self.config.start_stages < len(stages)):
                 variants = self.body.arm_restarts(rows.params)
                 if variants:
                     rows = rows.widened(variants)
-                    keep, choice = 1 + len(variants), _Choice(index + 2, by_scene=False)
-            if (warm_start is None and self.config.leg_restarts and keep == 1
+                    counts = [1 + len(variants)] * len(frames)
+                    choice = _Choice(index + 2, by_scene=False)
+            if (warm_start is None and self.config.leg_restarts and max(counts) == 1
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
                 restarts = self._leg_restarts(rows)
-                if restarts:
+                if restarts:  # each frame's own: a turn another frame needed is not fitted
                     tried = torch.stack([torch.ones(len(rows.labels), dtype=torch.bool),
-                                         *(t for _, t in restarts)], 1).flatten()
-                    rows = rows.widened([v for v, _ in restarts])
-                    keep, choice = 1 + len(restarts), _Choice(index + 2, tried=tried)
+                                         *(t for _, t in restarts)], 1)
+                    rows = rows.widened([v for v, _ in restarts]).taken(
+                        tried.flatten().nonzero().flatten().tolist())
+                    counts, choice = tried.sum(1).tolist(), _Choice(index + 2)
             stage_seconds[stage.name] = stage_seconds.get(stage.name, 0.0) + (
                 time.perf_counter() - t0)
             stage_evaluations[stage.name] = (stage_evaluations.get(stage.name, 0)
@@ -386,48 +394,43 @@ class Fitter:
         return {k: v.index_copy(0, index, redone[k]) for k, v in terms.items()}
 
     def _choose(self, choice: _Choice, stage: Stage, rows: _Rows,
-                terms: dict[str, torch.Tensor], keep: int) -> list[int]:
-        """The row each frame keeps (``keep`` candidates per frame, fitted by ``stage`` to
-        ``terms``) as ``choice`` says; without the arms or feet, only the data term
-        changes."""
+                terms: dict[str, torch.Tensor], keep: int | list[int]) -> list[int]:
+        """The row each frame keeps (``keep`` candidates per frame, or each frame's
+        count, fitted by ``stage`` to ``terms``) as ``choice`` says; without the arms or
+        feet, only the data term changes."""
         if not choice.arms or choice.feet_left_out is not None:
             conf = rows.conf.clone()
             if not choice.arms:
                 conf[:, ARMS] = 0
             if choice.feet_left_out is not None:
-                left_out = choice.feet_left_out.repeat_interleave(keep).nonzero().flatten()
+                left_out = choice.feet_left_out.repeat_interleave(
+                    torch.tensor(_sizes(keep, len(choice.feet_left_out)))).nonzero().flatten()
                 conf[left_out[:, None], FEET] = 0
             with torch.no_grad():
                 out = self.body(rows.params, vertices=False)
                 terms = {**terms, "data": self._data_term(stage, out, rows.target, conf)}
         return self._best_rows(rows.params, rows.detected, terms, keep, choice.by_scene,
-                               choice.tried, choice.priors)
+                               choice.priors)
 
     def _best_rows(self, params: Params, detected: torch.Tensor,
                    terms: dict[str, torch.Tensor],
-                   keep: int, by_scene: bool, tried: torch.Tensor | None = None,
-                   priors: bool = True) -> list[int]:
-        """Rows (one per frame) of the candidates, ``keep`` per frame, with the lowest
-        objective (``terms``; without the POSTURE_PRIORS unless ``priors``) plus,
-        ``by_scene`` with a scale search, ``start_scene_weight`` times how badly each can
-        meet the scene at its best scale (the body joints ``detected`` (rows, 25) as
-        :meth:`_scale_search` reads them) and, with ``start_choice_size``, the size prior
-        at that scale;
-        only the rows ``tried`` ((rows,) bool; None: all) compete, and only theirs are
-        searched."""
+                   keep: int | list[int], by_scene: bool, priors: bool = True) -> list[int]:
+        """Rows (one per frame) of the candidates, ``keep`` per frame (or each frame's
+        count, its rows consecutive), with the lowest objective (``terms``; without the
+        POSTURE_PRIORS unless ``priors``) plus, ``by_scene`` with a scale search,
+        ``start_scene_weight`` times how badly each can meet the scene at its best scale
+        (the body joints ``detected`` (rows, 25) as :meth:`_scale_search` reads them)
+        and, with ``start_choice_size``, the size prior at that scale."""
         score = sum(v for k, v in terms.items()
                     if (priors or k not in POSTURE_PRIORS) and k not in UNRANKED)
-        rows = torch.arange(len(score)) if tried is None else tried.nonzero().flatten()
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
-            scale, cost = self._scale_search({k: v[rows] for k, v in params.items()},
-                                             detected[rows])
+            scale, cost = self._scale_search(params, detected)
             if self.config.start_choice_size:
                 cost = cost + size_prior(scale)
-            score = score.index_add(0, rows, self.config.start_scene_weight * cost)
-        if tried is not None:
-            score = score.masked_fill(~tried, torch.inf)
-        score = score.view(-1, keep)
-        return (torch.arange(len(score)) * keep + score.argmin(1)).tolist()
+            score = score + self.config.start_scene_weight * cost
+        sizes = _sizes(keep, len(score) // keep if isinstance(keep, int) else len(keep))
+        return [group.start + int(score[group].argmin())
+                for group in lbfgs.sized_groups(sizes)]
 
     def _leg_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
         """Copies of ``rows.params`` with a leg turned until its ankle lies on the other
@@ -592,9 +595,10 @@ class Fitter:
 
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
                    conf: torch.Tensor, depth: list, previous: torch.Tensor | None,
-                   frames: int) -> dict[str, torch.Tensor]:
-        """L-BFGS calls on the ``free`` parameters until each frame's loss settles;
-        returns the terms at the accepted points (not at the line search's last probes)."""
+                   groups: list[slice]) -> dict[str, torch.Tensor]:
+        """L-BFGS calls on the ``free`` parameters until each frame's loss (its ``groups``
+        of rows) settles; returns the terms at the accepted points (not at the line
+        search's last probes)."""
         mesh = self._mesh_read(stage)
 
         def terms() -> dict[str, torch.Tensor]:
@@ -605,8 +609,7 @@ class Fitter:
             values = terms()
             return lambda rows: sum(t[rows].sum() for t in values.values())
 
-        self._minimise([params[n] for n in free], objective, stage.name,
-                       lbfgs.row_groups(len(target), frames), stage.max_iter,
+        self._minimise([params[n] for n in free], objective, stage.name, groups, stage.max_iter,
                        stage.max_calls or self.config.max_calls, self.config.ftol)
         with torch.no_grad():
             return terms()

@@ -31,8 +31,13 @@ class _Failed(Exception):
 
 def row_groups(rows: int, groups: int) -> list[slice]:
     """``rows`` split into ``groups`` consecutive groups of as many rows (a frame's)."""
-    size = rows // groups
-    return [slice(g * size, (g + 1) * size) for g in range(groups)]
+    return sized_groups([rows // groups] * groups)
+
+
+def sized_groups(sizes: list[int]) -> list[slice]:
+    """Consecutive groups of rows of the given ``sizes`` (each frame's candidates)."""
+    ends = torch.tensor(sizes).cumsum(0).tolist()
+    return [slice(end - size, end) for size, end in zip(sizes, ends)]
 
 
 def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[slice],

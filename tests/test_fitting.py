@@ -12,7 +12,7 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from prox_engine import scene_sdf
+from prox_engine import lbfgs, scene_sdf
 from prox_engine.body.base import BodyOutput
 from prox_engine.camera import Camera
 from prox_engine.config import FitConfig, Stage, load_config
@@ -625,7 +625,7 @@ def test_stage_stops_after_the_call_that_settles(body):
             target, conf = fitter._targets([frame])
             evaluations.clear()
             fitter._run_stage(stage, params, ["transl", "global_orient", "body_pose"], target,
-                              conf, [None], None, 1)
+                              conf, [None], None, lbfgs.row_groups(1, 1))
             counts.append(len(evaluations))
     finally:
         hook.remove()
@@ -898,19 +898,18 @@ def test_knee_restarts_pose_a_missed_leg_onto_its_knee_and_ankle_rays(body):
     assert len(fitter._leg_restarts(rows)) == shins_only
 
 
-def test_only_the_restarts_tried_compete_for_a_frame(body):
-    """Frames fitted together share their rows' layout, so a frame none of whose legs is
-    worth restarting carries copies of its body: those never win, even on a lower
-    objective, and a frame's tried restart still can."""
+def test_each_frame_chooses_among_its_own_rows(body):
+    """Frames fitted together carry as many rows as each has candidates (a frame none of
+    whose legs is worth restarting carries none): a frame with one row keeps it, whatever
+    the next frame's rows score, and a frame chooses among its own."""
     cam2world = tilted_camera()
-    params = {k: v.repeat(4, *[1] * (v.dim() - 1))
+    params = {k: v.repeat(3, *[1] * (v.dim() - 1))
               for k, v in _posed_params(body, cam2world).items()}
-    terms = {"data": torch.tensor([5.0, 1.0, 5.0, 1.0])}
+    terms = {"data": torch.tensor([5.0, 1.0, 0.5])}
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
-    seen = torch.ones(4, 25, dtype=torch.bool)
-    tried = torch.tensor([True, False, True, True])
-    assert fitter._best_rows(params, seen, terms, 2, True, tried) == [0, 3]
-    assert fitter._best_rows(params, seen, terms, 2, False) == [1, 3]
+    seen = torch.ones(3, 25, dtype=torch.bool)
+    assert fitter._best_rows(params, seen, terms, [1, 2], True) == [0, 2]
+    assert fitter._best_rows(params, seen, terms, [2, 1], False) == [1, 2]
 
 
 def _posed_params(body, cam2world: np.ndarray, posture: str = "standing"
