@@ -132,9 +132,9 @@ class _Rows:
                      [self.labels[r] for r in rows])
 
 
-def _sizes(keep: int | list[int], frames: int) -> list[int]:
-    """Rows per frame: ``keep`` for each of ``frames``, or each frame's own count."""
-    return [keep] * frames if isinstance(keep, int) else keep
+def _sizes(keep: int | list[int], rows: int) -> list[int]:
+    """Rows per frame of ``rows`` candidate rows: ``keep`` each, or each frame's count."""
+    return [keep] * (rows // keep) if isinstance(keep, int) else keep
 
 
 class Fitter:
@@ -404,7 +404,7 @@ class Fitter:
                 conf[:, ARMS] = 0
             if choice.feet_left_out is not None:
                 left_out = choice.feet_left_out.repeat_interleave(
-                    torch.tensor(_sizes(keep, len(choice.feet_left_out)))).nonzero().flatten()
+                    torch.tensor(_sizes(keep, len(rows.labels)))).nonzero().flatten()
                 conf[left_out[:, None], FEET] = 0
             with torch.no_grad():
                 out = self.body(rows.params, vertices=False)
@@ -428,9 +428,8 @@ class Fitter:
             if self.config.start_choice_size:
                 cost = cost + size_prior(scale)
             score = score + self.config.start_scene_weight * cost
-        sizes = _sizes(keep, len(score) // keep if isinstance(keep, int) else len(keep))
         return [group.start + int(score[group].argmin())
-                for group in lbfgs.sized_groups(sizes)]
+                for group in lbfgs.sized_groups(_sizes(keep, len(score)))]
 
     def _leg_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
         """Copies of ``rows.params`` with a leg turned until its ankle lies on the other
