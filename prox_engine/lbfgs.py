@@ -12,6 +12,7 @@ of batched arithmetic; a group fitted alone follows ``torch.optim.LBFGS`` exactl
 from __future__ import annotations
 
 import math
+from itertools import accumulate
 from typing import Callable, Generator
 
 import torch
@@ -36,8 +37,7 @@ def row_groups(rows: int, groups: int) -> list[slice]:
 
 def sized_groups(sizes: list[int]) -> list[slice]:
     """Consecutive groups of rows of the given ``sizes`` (each frame's candidates)."""
-    ends = torch.tensor(sizes).cumsum(0).tolist()
-    return [slice(end - size, end) for size, end in zip(sizes, ends)]
+    return [slice(end - size, end) for size, end in zip(sizes, accumulate(sizes))]
 
 
 def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[slice],

@@ -187,7 +187,7 @@ def test_start_choice_charges_the_size_a_start_needs_to_meet_the_scene(body):
     terms = {"data": torch.tensor([100.0, 150.0])}
     detected = torch.ones(2, 25)
     assert fitter._best_rows(params, detected, terms, 2, by_scene=True) == [1]
-    config.start_choice_size = 0.0
+    config.start_choice_size = False
     assert fitter._best_rows(params, detected, terms, 2, by_scene=True) == [0]
 
 
