@@ -132,11 +132,6 @@ class _Rows:
                      [self.labels[r] for r in rows])
 
 
-def _sizes(keep: int | list[int], rows: int) -> list[int]:
-    """Rows per frame of ``rows`` candidate rows: ``keep`` each, or each frame's count."""
-    return [keep] * (rows // keep) if isinstance(keep, int) else keep
-
-
 class Fitter:
     """Fits one body model to frames seen by one camera, optionally inside a scene."""
 
@@ -394,29 +389,29 @@ class Fitter:
         return {k: v.index_copy(0, index, redone[k]) for k, v in terms.items()}
 
     def _choose(self, choice: _Choice, stage: Stage, rows: _Rows,
-                terms: dict[str, torch.Tensor], keep: int | list[int]) -> list[int]:
-        """The row each frame keeps (``keep`` candidates per frame, or each frame's
-        count, fitted by ``stage`` to ``terms``) as ``choice`` says; without the arms or
-        feet, only the data term changes."""
+                terms: dict[str, torch.Tensor], counts: list[int]) -> list[int]:
+        """The row each frame keeps (``counts`` candidates per frame, fitted by ``stage``
+        to ``terms``) as ``choice`` says; without the arms or feet, only the data term
+        changes."""
         if not choice.arms or choice.feet_left_out is not None:
             conf = rows.conf.clone()
             if not choice.arms:
                 conf[:, ARMS] = 0
             if choice.feet_left_out is not None:
                 left_out = choice.feet_left_out.repeat_interleave(
-                    torch.tensor(_sizes(keep, len(rows.labels)))).nonzero().flatten()
+                    torch.tensor(counts)).nonzero().flatten()
                 conf[left_out[:, None], FEET] = 0
             with torch.no_grad():
                 out = self.body(rows.params, vertices=False)
                 terms = {**terms, "data": self._data_term(stage, out, rows.target, conf)}
-        return self._best_rows(rows.params, rows.detected, terms, keep, choice.by_scene,
+        return self._best_rows(rows.params, rows.detected, terms, counts, choice.by_scene,
                                choice.priors)
 
     def _best_rows(self, params: Params, detected: torch.Tensor,
                    terms: dict[str, torch.Tensor],
-                   keep: int | list[int], by_scene: bool, priors: bool = True) -> list[int]:
-        """Rows (one per frame) of the candidates, ``keep`` per frame (or each frame's
-        count, its rows consecutive), with the lowest objective (``terms``; without the
+                   counts: list[int], by_scene: bool, priors: bool = True) -> list[int]:
+        """Rows (one per frame) of the candidates, ``counts`` per frame (each frame's rows
+        consecutive), with the lowest objective (``terms``; without the
         POSTURE_PRIORS unless ``priors``) plus, ``by_scene`` with a scale search,
         ``start_scene_weight`` times how badly each can meet the scene at its best scale
         (the body joints ``detected`` (rows, 25) as :meth:`_scale_search` reads them)
@@ -429,7 +424,7 @@ class Fitter:
                 cost = cost + size_prior(scale)
             score = score + self.config.start_scene_weight * cost
         return [group.start + int(score[group].argmin())
-                for group in lbfgs.sized_groups(_sizes(keep, len(score)))]
+                for group in lbfgs.sized_groups(counts)]
 
     def _leg_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
         """Copies of ``rows.params`` with a leg turned until its ankle lies on the other

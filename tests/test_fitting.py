@@ -163,10 +163,10 @@ def test_start_choice_does_not_rank_by_the_level_reward(body):
     fitter = Fitter(body, CAMERA, config, floor_scene(tilted_camera()))
     terms = {"data": torch.tensor([100.0, 150.0]), "level": torch.tensor([0.0, -480.0])}
     detected = torch.ones(2, 25)
-    assert fitter._best_rows(body.init_params(2), detected, terms, 2, by_scene=False) == [0]
+    assert fitter._best_rows(body.init_params(2), detected, terms, [2], by_scene=False) == [0]
     del terms["level"]
     terms["upright"] = torch.tensor([0.0, -480.0])  # a term that does rank
-    assert fitter._best_rows(body.init_params(2), detected, terms, 2, by_scene=False) == [1]
+    assert fitter._best_rows(body.init_params(2), detected, terms, [2], by_scene=False) == [1]
 
 
 def test_start_choice_charges_the_size_a_start_needs_to_meet_the_scene(body):
@@ -186,9 +186,9 @@ def test_start_choice_charges_the_size_a_start_needs_to_meet_the_scene(body):
     assert abs(float(cost[0] - cost[1])) < 0.01, cost  # the scene alone: a tie
     terms = {"data": torch.tensor([100.0, 150.0])}
     detected = torch.ones(2, 25)
-    assert fitter._best_rows(params, detected, terms, 2, by_scene=True) == [1]
+    assert fitter._best_rows(params, detected, terms, [2], by_scene=True) == [1]
     config.start_choice_size = False
-    assert fitter._best_rows(params, detected, terms, 2, by_scene=True) == [0]
+    assert fitter._best_rows(params, detected, terms, [2], by_scene=True) == [0]
 
 
 def test_upright_term_spares_frames_cut_off_at_the_knees(body):
@@ -1153,7 +1153,7 @@ def test_the_start_choice_leaves_out_the_arms(body):
         assert float(terms["data"][0]) > 3 * float(terms["data"][1])  # the arm costs most
         choice = _Choice(config.start_stages, priors=config.start_choice_priors,
                          arms=config.start_choice_arms)
-        return fitter._choose(choice, stage, rows, terms, 2)[0]
+        return fitter._choose(choice, stage, rows, terms, [2])[0]
 
     assert kept("prox") == 0
     assert kept("prox-start-arms") == 1
@@ -1182,7 +1182,7 @@ def test_where_the_thighs_are_hidden_the_start_choice_leaves_the_feet_out(body):
 
     def kept(feet_left_out: torch.Tensor | None) -> list[int]:
         choice = _Choice(2, by_scene=False, feet_left_out=feet_left_out)
-        return fitter._choose(choice, stage, rows, terms, keep=2)
+        return fitter._choose(choice, stage, rows, terms, [2])
 
     assert kept(None) == [1]
     assert kept(torch.tensor([False])) == [1]

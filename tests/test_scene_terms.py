@@ -718,7 +718,7 @@ def test_start_choice_asks_which_start_can_sit_on_the_chair(tmp_path, body):
     seen = torch.ones(2, 25, dtype=torch.bool)  # every joint seen clearly
 
     def choice() -> list[int]:
-        return Fitter(body, camera, config, scene)._best_rows(starts, seen, terms, 2,
+        return Fitter(body, camera, config, scene)._best_rows(starts, seen, terms, [2],
                                                                by_scene=True)
 
     assert choice() == [1]
