@@ -70,11 +70,12 @@ class FitConfig:
     # Sequence mode fits a frame again from scratch when its neighbour's fit lost the
     # keypoints (pipeline.REFIT_RATIO), and goes on from that fit.
     sequence_refit: bool = True
-    # ... and when the labelling taken from its neighbour's fit overrides the detector's
-    # left and right of the same part for the second frame running: the detector swaps a
-    # frame's legs or arms now and then, so a chain that keeps overriding it carries a
-    # wrong anchor's labelling.
-    sequence_side_refit: bool = True
+    # ... and, where set, when the labelling taken from its neighbour's fit overrides the
+    # detector's left and right of the same part for the second frame running: a chain
+    # that keeps overriding the detector may carry a wrong anchor's labelling (seed 33's
+    # reacher, 299 -> 137 mm), but the anchor is chosen as labelled as detected, and of
+    # the 5 such refits over 16 seeds 4 were worse than the warm fit (`prox-side-refit`).
+    sequence_side_refit: bool = False
     # ... and when its fit floats over every surface (quality.FLOATING), keeping the fit
     # from scratch if that floats less (see pipeline._unless_floating).
     sequence_floating_refit: bool = True

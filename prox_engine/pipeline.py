@@ -26,10 +26,14 @@ from .scene import Scene
 
 Progress = Callable[[int, int, str], None]
 # Sequence mode refits a frame from scratch when its neighbour's fit ends this many times
-# further from the keypoints than the anchor's, and this many pixels. At 3 times (where
-# quality.py flags a frame against the recording's median) a table-leaner drifting to
-# twice the anchor's error was left alone; 2 times gained 0-12 mm on tuning seeds 0, 8, 9.
-REFIT_RATIO, REFIT_MIN_PX = 2.0, 10.0
+# further from the keypoints than the anchor's, and this many pixels: it lost them (a cut
+# in the video, a jump of the detector to another person). At 10 px, 37 of the 40 refits
+# over 13 seeds were of blurred frames (10 px of noise alone puts a good fit 12.5 px off);
+# at 40 px none of 864 benchmark frames is refitted (their warm fits end 4-30 px off):
+# 648 tuning and spent frames 83.7 -> 83.0 mm PJE (bed -7.5, walk -7.0, reach +7.7),
+# held-out seeds 62-65 (the first three seen before) 84.5 / 91.5 / 101.6 / 86.9 -> 74.9 /
+# 87.9 / 99.8 / 86.9, with sequence_side_refit off as well.
+REFIT_RATIO, REFIT_MIN_PX = 2.0, 40.0
 # Sequence mode starts at most this many well-seen frames (one start search each) looking
 # for an anchor labelled as detected (FitConfig.anchor_as_detected).
 ANCHOR_TRIES = 5

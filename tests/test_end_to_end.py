@@ -171,21 +171,25 @@ def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_
     assert second["seconds"] >= sum(stage["seconds"] for stage in profile.values()) - 1e-3
 
 
-def test_sequence_mode_refits_a_chain_that_keeps_overriding_the_detector():
-    """The detector swaps a frame's legs or arms now and then; a chain whose labelling
-    overrides it on the same part for the second frame running carries a wrong anchor's
-    labelling, so that frame is refitted from scratch. One override, or overrides of
-    different parts (two independent detector swaps), keep the warm fit; a lost fit is
-    refitted whatever its labels; each reason has its switch."""
+def test_sequence_mode_refits_a_lost_fit_and_optionally_a_chain_overriding_the_detector():
+    """A warm fit that lost the keypoints (over twice the anchor's error and 40 px) is
+    refitted from scratch whatever its labels; one that a blurred frame puts 12-30 px off
+    is kept. With `sequence_side_refit` (`prox-side-refit`), so is a chain whose labelling
+    overrides the detector on the same part for the second frame running; one override,
+    or overrides of different parts (two independent detector swaps), keep the warm fit.
+    Each reason has its switch."""
     from prox_engine.config import load_config
     from prox_engine.pipeline import refit_reason
 
-    prox = load_config("prox")
-    assert "legs for the second frame" in refit_reason(prox, 6.0, 5.0, ["legs"], ["legs"])
-    assert "arms for the second" in refit_reason(prox, 6.0, 5.0, ["arms"], ["legs", "arms"])
-    assert refit_reason(prox, 6.0, 5.0, ["arms"], ["legs"]) == ""
-    assert refit_reason(prox, 6.0, 5.0, [], ["legs"]) == ""
-    assert refit_reason(prox, 6.0, 5.0, ["legs"], []) == ""
-    assert "px off" in refit_reason(prox, 40.0, 5.0, [], [])
-    assert refit_reason(load_config("prox-no-side-refit"), 6.0, 5.0, ["legs"], ["legs"]) == ""
-    assert refit_reason(load_config("prox-no-refit"), 40.0, 5.0, ["legs"], ["legs"]) == ""
+    prox, sides = load_config("prox"), load_config("prox-side-refit")
+    assert "px off" in refit_reason(prox, 50.0, 5.0, [], [])
+    assert "px off" in refit_reason(prox, 90.0, 30.0, ["legs"], ["legs"])
+    assert refit_reason(prox, 30.0, 5.0, [], []) == ""
+    assert refit_reason(prox, 70.0, 40.0, [], []) == ""
+    assert refit_reason(prox, 6.0, 5.0, ["legs"], ["legs"]) == ""
+    assert "legs for the second frame" in refit_reason(sides, 6.0, 5.0, ["legs"], ["legs"])
+    assert "arms for the second" in refit_reason(sides, 6.0, 5.0, ["arms"], ["legs", "arms"])
+    assert refit_reason(sides, 6.0, 5.0, ["arms"], ["legs"]) == ""
+    assert refit_reason(sides, 6.0, 5.0, [], ["legs"]) == ""
+    assert refit_reason(sides, 6.0, 5.0, ["legs"], []) == ""
+    assert refit_reason(load_config("prox-no-refit"), 90.0, 5.0, ["legs"], ["legs"]) == ""
