@@ -38,7 +38,8 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",
            "prox", "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,
-           "prox-no-refit" + SEQUENCE, "prox-side-refit" + SEQUENCE,
+           "prox-no-refit" + SEQUENCE, "prox-no-limb-refit" + SEQUENCE,
+           "prox-side-refit" + SEQUENCE,
            "prox-no-floating-refit" + SEQUENCE,
            "prox-anchor-scale" + SEQUENCE, "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}

@@ -70,6 +70,9 @@ class FitConfig:
     # Sequence mode fits a frame again from scratch when its neighbour's fit lost the
     # keypoints (pipeline.REFIT_RATIO), and goes on from that fit.
     sequence_refit: bool = True
+    # ... and when one limb's keypoints alone end far off (pipeline.LIMB_RATIO): an arm
+    # that moved faster than the chain could follow.
+    sequence_limb_refit: bool = True
     # ... and, where set, when the labelling taken from its neighbour's fit overrides the
     # detector's left and right of the same part for the second frame running: a chain
     # that keeps overriding the detector may carry a wrong anchor's labelling (seed 33's

@@ -9,7 +9,7 @@ import torch
 
 from .body.base import BodyModel
 from .camera import Camera
-from .keypoints import BODY, Keypoints, side_swap
+from .keypoints import BODY, LIMBS, Keypoints, side_swap
 from .scene import Scene
 
 PENETRATION_THRESHOLD = 0.01  # a vertex "penetrates" when more than 1 cm inside
@@ -64,16 +64,33 @@ def scene_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene
 
 
 @torch.no_grad()
-def reprojection_error(keypoints3d: torch.Tensor, keypoints: Keypoints, camera: Camera,
-                       mask: torch.Tensor, swapped: Sequence[str] = (),
-                       min_confidence: float = 0.1) -> float:
-    """Mean pixel distance over the body keypoints detected with some confidence, with the
-    left and right of the parts the fit found ``swapped`` exchanged (as it fitted them: a
-    fit that rightly undid a leg swap is otherwise reported tens of pixels off)."""
+def keypoint_errors(keypoints3d: torch.Tensor, keypoints: Keypoints, camera: Camera,
+                    mask: torch.Tensor, swapped: Sequence[str] = (),
+                    min_confidence: float = 0.1) -> torch.Tensor:
+    """(25,) pixel distance of each body keypoint from its detection, NaN where it was not
+    detected with some confidence, with the left and right of the parts the fit found
+    ``swapped`` exchanged (as it fitted them: a fit that rightly undid a leg swap is
+    otherwise reported tens of pixels off)."""
     uv = camera.project(keypoints3d[BODY])
     target = torch.as_tensor(keypoints.data[side_swap(tuple(swapped))][BODY],
                              dtype=torch.float32)
     valid = (target[:, 2] > min_confidence) & mask[BODY]
-    if not valid.any():
-        return float("nan")
-    return float((uv[valid] - target[valid, :2]).norm(dim=-1).mean())
+    errors = (uv - target[:, :2]).norm(dim=-1)
+    return torch.where(valid, errors, torch.full_like(errors, float("nan")))
+
+
+def reprojection_error(keypoints3d: torch.Tensor, keypoints: Keypoints, camera: Camera,
+                       mask: torch.Tensor, swapped: Sequence[str] = (),
+                       min_confidence: float = 0.1) -> float:
+    """Mean pixel distance over the body keypoints detected with some confidence (see
+    :func:`keypoint_errors`); NaN where none was."""
+    return float(keypoint_errors(keypoints3d, keypoints, camera, mask, swapped,
+                                 min_confidence).nanmean())
+
+
+def limb_errors(errors: torch.Tensor) -> dict[str, float]:
+    """Per limb (keypoints.LIMBS) with a detected keypoint, the mean pixel distance of its
+    detected keypoints from the fit, given each keypoint's ``errors`` (25,)
+    (:func:`keypoint_errors`)."""
+    means = {name: errors[list(rows)].nanmean() for name, rows in LIMBS.items()}
+    return {name: float(m) for name, m in means.items() if not torch.isnan(m)}

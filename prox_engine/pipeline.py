@@ -35,6 +35,14 @@ Progress = Callable[[int, int, str], None]
 # 83.0, with sequence_side_refit off as well; over those 918 frames walk -6.2, bed -4.2,
 # reach +5.4 (a blurred reacher's fit from scratch took an arm's posture its chain missed).
 REFIT_RATIO, REFIT_MIN_PX = 2.0, 40.0
+# ... and when one limb's keypoints (metrics.limb_errors) end this many times the anchor's
+# mean error off on average, this many pixels, and this many times any other limb's: an
+# arm that moved faster than its chain could follow (FitConfig.sequence_limb_refit),
+# where blur spreads its error over every limb. 22 refits over 17 seeds: 648 tuning and
+# spent frames 83.0 -> 82.3 mm PJE, seeds 62-66 86.5 -> 84.7, held-out seed 68 81.8 ->
+# 81.1, no kind worse (reach -5.2 and -6.7); without the stand-out test blurred lying
+# bodies were refitted too (bed +11.2 on the 648 frames, seed 59's 90 -> 418 mm).
+LIMB_RATIO, LIMB_MIN_PX, LIMB_STANDOUT = 4.0, 20.0, 2.5
 # Sequence mode starts at most this many well-seen frames (one start search each) looking
 # for an anchor labelled as detected (FitConfig.anchor_as_detected).
 ANCHOR_TRIES = 5
@@ -214,8 +222,9 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     which the fresh fit's scale search does not inherit."""
     results = fitter.fit([frame], warm_start=previous.params,
                          previous_keypoints=previous.keypoints[None])
-    why = refit_reason(fitter.config, _error_px(fitter, results[0], frame), anchor_px,
-                       previous.swapped, results[0].swapped)
+    errors = _errors(fitter, results[0], frame)
+    why = refit_reason(fitter.config, float(errors.nanmean()), anchor_px,
+                       previous.swapped, results[0].swapped, metrics.limb_errors(errors))
     if why:
         fresh = fitter.fit([frame])
         fresh[0].events.append(f"sequence: refitted from scratch, {why}")
@@ -274,18 +283,27 @@ def _discard(kept: FitResult, dropped: FitResult) -> None:
 
 
 def refit_reason(config: FitConfig, error_px: float, anchor_px: float,
-                 previous_swapped: list[str], swapped: list[str]) -> str:
+                 previous_swapped: list[str], swapped: list[str],
+                 limbs: dict[str, float] | None = None) -> str:
     """Why sequence mode fits a frame again from scratch ('' if it keeps the warm fit
-    ending ``error_px`` from the keypoints, relabelled ``swapped``, whose neighbour was
-    relabelled ``previous_swapped``): the fit lost the keypoints (over REFIT_RATIO times
-    the anchor's error and over REFIT_MIN_PX), or, with ``sequence_side_refit``, the
-    chain overrode the detector's left and right of the same part (legs or arms) for the
-    second frame running."""
+    ending ``error_px`` from the keypoints, each limb ``limbs`` px off on average,
+    relabelled ``swapped``, whose neighbour was relabelled ``previous_swapped``): the fit
+    lost the keypoints (over REFIT_RATIO times the anchor's error and over REFIT_MIN_PX),
+    or, with ``sequence_limb_refit``, one limb's of two or more (over LIMB_RATIO times the
+    anchor's error, LIMB_MIN_PX and LIMB_STANDOUT times any other limb's), or, with
+    ``sequence_side_refit``, the chain overrode the detector's left and right of the same
+    part (legs or arms) for the second frame running."""
     if not config.sequence_refit:
         return ""
     if error_px > max(REFIT_RATIO * anchor_px, REFIT_MIN_PX):
         return (f"{error_px:.0f} px off from its neighbour's fit ({anchor_px:.0f} for the "
                 "anchor)")
+    ranked = sorted((limbs or {}).items(), key=lambda item: item[1], reverse=True)
+    if config.sequence_limb_refit and len(ranked) > 1:
+        (name, worst), (_, runner_up) = ranked[:2]
+        if worst > max(LIMB_RATIO * anchor_px, LIMB_MIN_PX, LIMB_STANDOUT * runner_up):
+            return (f"its {name} {worst:.0f} px off from its neighbour's fit (the other "
+                    f"limbs at most {runner_up:.0f}, the anchor {anchor_px:.0f})")
     again = sorted(set(previous_swapped) & set(swapped))
     if config.sequence_side_refit and again:
         return (f"its neighbour's fit overrode the detector's left and right of the "
@@ -302,8 +320,12 @@ def _charge(result: FitResult, step: str, seconds: float, evaluations: float) ->
 
 
 def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
-    return metrics.reprojection_error(result.keypoints, frame.keypoints, fitter.camera,
-                                      fitter.body.keypoint_mask, result.swapped)
+    return float(_errors(fitter, result, frame).nanmean())
+
+
+def _errors(fitter: Fitter, result: FitResult, frame: Frame) -> torch.Tensor:
+    return metrics.keypoint_errors(result.keypoints, frame.keypoints, fitter.camera,
+                                   fitter.body.keypoint_mask, result.swapped)
 
 
 def _chains(rec: Recording, names: list[str], anchor_seen: float,

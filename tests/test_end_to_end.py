@@ -172,11 +172,13 @@ def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_
 
 
 def test_sequence_mode_refits_a_lost_fit_and_optionally_a_chain_overriding_the_detector():
-    """A warm fit that lost the keypoints (over twice the anchor's error and 40 px) is
-    refitted from scratch whatever its labels; one that a blurred frame puts 12-30 px off
-    is kept. With `sequence_side_refit` (`prox-side-refit`), so is a chain whose labelling
-    overrides the detector on the same part for the second frame running; one override,
-    or overrides of different parts (two independent detector swaps), keep the warm fit.
+    """A warm fit that lost the keypoints (over twice the anchor's error and 40 px), or one
+    limb's (over four times the anchor's error, 20 px and 2.5 times any other limb's:
+    blur spreads over every limb), is refitted from scratch whatever its labels; one that a
+    blurred frame puts 12-30 px off is kept. With `sequence_side_refit`
+    (`prox-side-refit`), so is a chain whose labelling overrides the detector on the same
+    part for the second frame running; one override, or overrides of different parts
+    (two independent detector swaps), keep the warm fit.
     Each reason has its switch."""
     from prox_engine.config import load_config
     from prox_engine.pipeline import refit_reason
@@ -187,6 +189,13 @@ def test_sequence_mode_refits_a_lost_fit_and_optionally_a_chain_overriding_the_d
     assert refit_reason(prox, 30.0, 5.0, [], []) == ""
     assert refit_reason(prox, 70.0, 40.0, [], []) == ""
     assert refit_reason(prox, 6.0, 5.0, ["legs"], ["legs"]) == ""
+    arm = {"right arm": 60.0, "left arm": 8.0, "left leg": 6.0}
+    assert "right arm 60 px off" in refit_reason(prox, 9.0, 5.0, [], [], arm)
+    assert refit_reason(prox, 9.0, 16.0, [], [], arm) == ""  # under 4 times the anchor's
+    assert refit_reason(prox, 9.0, 3.0, [], [], {"left leg": 18.0, "left arm": 3.0}) == ""
+    assert refit_reason(prox, 9.0, 5.0, [], [], {**arm, "left arm": 30.0}) == ""  # blur
+    assert refit_reason(prox, 9.0, 5.0, [], [], {"right arm": 60.0}) == ""  # nothing to compare
+    assert refit_reason(load_config("prox-no-limb-refit"), 9.0, 5.0, [], [], arm) == ""
     assert "legs for the second frame" in refit_reason(sides, 6.0, 5.0, ["legs"], ["legs"])
     assert "arms for the second" in refit_reason(sides, 6.0, 5.0, ["arms"], ["legs", "arms"])
     assert refit_reason(sides, 6.0, 5.0, ["arms"], ["legs"]) == ""

@@ -110,3 +110,35 @@ def test_flags_show_on_the_sequence_and_frame_pages(cli_fits, tmp_path):
     other = summary["frames"][0]["frame"]
     assert "Probably a wrong fit" not in (results / "report" / "frames" / f"{other}.html"
                                          ).read_text()
+
+
+def test_keypoint_errors_name_the_limb_the_fit_lost():
+    """Each detected body keypoint's distance from the fit's projection, through an
+    off-centre camera with unequal focal lengths: an arm whose detections moved 48 px is
+    48 px off and the other limbs on their keypoints, a leg the detector did not report
+    is left out, and the mean reprojection error is over the detected keypoints only."""
+    from prox_engine.camera import Camera
+    from prox_engine.keypoints import N_KEYPOINTS, Keypoints
+    from prox_engine.metrics import keypoint_errors, limb_errors, reprojection_error
+
+    camera = Camera(fx=900.0, fy=1150.0, cx=700.0, cy=380.0)
+    joints = torch.tensor(np.random.default_rng(3).uniform([-0.6, -0.9, 2.5], [0.6, 0.9, 3.5],
+                                                           (N_KEYPOINTS, 3)), dtype=torch.float32)
+    data = np.zeros((N_KEYPOINTS, 3))
+    data[:, :2] = camera.project(joints).numpy()
+    data[:25, 2] = 0.9
+    data[[5, 6, 7], 0] += 48.0  # the left arm
+    data[[9, 10, 11], 2] = 0.0  # the right leg, not detected
+    keypoints = Keypoints(data, has_hands=False, has_face=False)
+    mask = torch.ones(N_KEYPOINTS, dtype=torch.bool)
+    errors = keypoint_errors(joints, keypoints, camera, mask)
+    assert torch.isnan(errors[[9, 10, 11]]).all()
+    assert torch.allclose(errors[[5, 6, 7]], torch.full((3,), 48.0), atol=1e-2)
+    limbs = limb_errors(errors)
+    assert set(limbs) == {"right arm", "left arm", "left leg"}
+    assert limbs["left arm"] == pytest.approx(48.0, abs=1e-2)
+    assert limbs["right arm"] < 1e-2 and limbs["left leg"] < 1e-2
+    assert reprojection_error(joints, keypoints, camera, mask) == pytest.approx(
+        48.0 * 3 / 22, abs=1e-2)
+    data[:25, 2] = 0.0
+    assert limb_errors(keypoint_errors(joints, keypoints, camera, mask)) == {}
