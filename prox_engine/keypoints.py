@@ -45,12 +45,12 @@ ANKLES = [11, 14]  # right, left: a frame cut off at the knees has neither
 # Per leg (right, left), the knee and what hangs from it: ankle, big toe, small toe, heel.
 SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
 HIPS = [9, 12]  # right, left: where each leg of SHINS hangs from
+KNEES = [knee for knee, _ in SHINS]
+FEET = [j for _, foot in SHINS for j in foot]  # ankles, toes and heels
 # The limbs whose keypoints sequence mode checks one by one: shoulder, elbow and wrist; hip,
 # knee and ankle.
 LIMBS = {"right arm": (2, 3, 4), "left arm": (5, 6, 7), "right leg": (9, 10, 11),
          "left leg": (12, 13, 14)}
-KNEES = [knee for knee, _ in SHINS]
-FEET = [j for _, foot in SHINS for j in foot]  # ankles, toes and heels
 # The arms' keypoints (118 layout): elbows, wrists (right, left) and both hands.
 ARMS = [3, 4, 6, 7, *range(LEFT_HAND.start, RIGHT_HAND.stop)]
 SEEN = 0.5  # detector confidence of a joint it clearly saw

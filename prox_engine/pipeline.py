@@ -215,8 +215,8 @@ def _checked_swap(fitter: Fitter, frame: Frame, result: FitResult) -> FitResult:
 def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: float
               ) -> list[FitResult]:
     """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``). Where that
-    lost the keypoints or keeps overriding the detector's sides (:func:`refit_reason`),
-    the frame is fitted again from scratch, and the sequence goes on from that fit, with
+    lost the keypoints, or one limb's, or keeps overriding the detector's sides
+    (:func:`refit_reason`), the frame is fitted again from scratch, and the sequence goes on from that fit, with
     its own shape: a warm start that lost the keypoints may still end near them at a
     wrong depth (a lying body 30 cm near, 13.0 px off against the fresh fit's 13.4),
     which the fresh fit's scale search does not inherit."""
