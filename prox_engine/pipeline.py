@@ -216,10 +216,10 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
               ) -> list[FitResult]:
     """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``). Where that
     lost the keypoints, or one limb's, or keeps overriding the detector's sides
-    (:func:`refit_reason`), the frame is fitted again from scratch, and the sequence goes on from that fit, with
-    its own shape: a warm start that lost the keypoints may still end near them at a
-    wrong depth (a lying body 30 cm near, 13.0 px off against the fresh fit's 13.4),
-    which the fresh fit's scale search does not inherit."""
+    (:func:`refit_reason`), the frame is fitted again from scratch, and the sequence goes
+    on from that fit, with its own shape: a warm start that lost the keypoints may still
+    end near them at a wrong depth (a lying body 30 cm near, 13.0 px off against the
+    fresh fit's 13.4), which the fresh fit's scale search does not inherit."""
     results = fitter.fit([frame], warm_start=previous.params,
                          previous_keypoints=previous.keypoints[None])
     errors = _errors(fitter, results[0], frame)
@@ -320,7 +320,8 @@ def _charge(result: FitResult, step: str, seconds: float, evaluations: float) ->
 
 
 def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
-    return float(_errors(fitter, result, frame).nanmean())
+    return metrics.reprojection_error(result.keypoints, frame.keypoints, fitter.camera,
+                                      fitter.body.keypoint_mask, result.swapped)
 
 
 def _errors(fitter: Fitter, result: FitResult, frame: Frame) -> torch.Tensor:
