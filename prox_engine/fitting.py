@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -603,8 +603,12 @@ class Fitter:
             values = terms()
             return lambda rows: sum(t[rows].sum() for t in values.values())
 
-        self._minimise([params[n] for n in free], objective, stage.name, groups, stage.max_iter,
-                       stage.max_calls or self.config.max_calls, self.config.ftol)
+        expanded = (self.body.shape_expanded(params, mesh)
+                    if set(self.body.shape_group()) & set(free) else nullcontext())
+        with expanded:
+            self._minimise([params[n] for n in free], objective, stage.name, groups,
+                           stage.max_iter, stage.max_calls or self.config.max_calls,
+                           self.config.ftol)
         with torch.no_grad():
             return terms()
 

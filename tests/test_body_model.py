@@ -1,10 +1,12 @@
 """The anny backend honours the body-model interface."""
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import pytest
 import torch
 
-from prox_engine.body.anny_body import BODY_BONES
+from prox_engine.body.anny_body import BODY_BONES, EXPANDED_ROWS
 from prox_engine.losses import self_penetration
 
 
@@ -82,6 +84,57 @@ def test_a_vertex_subset_is_posed_as_the_whole_mesh_picks_it(body):
                                     if leaves[k].grad is not None]))
         assert torch.allclose(posed[0], posed[1], atol=1e-6)
         assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-4)
+
+
+def test_a_shape_expansion_is_first_order_about_its_point_and_exact_outside(body):
+    """Within :meth:`shape_expanded` a free shape's vertices, keypoints and their
+    gradients are the first-order expansion about each row's own expansion point: equal
+    to the model's at the point, within 0.1 mm (gradients within 3 %) a scene stage's step
+    away (0.05 logits), apart by second-order terms at 0.3; a frozen shape, another vertex
+    subset, a batch of more than EXPANDED_ROWS rows and the model outside the context are
+    exact."""
+    torch.manual_seed(5)
+    params = body.init_params(2)
+    params["body_pose"] += torch.randn_like(params["body_pose"]) * 0.3
+    params["shape"] = params["shape"] + torch.randn_like(params["shape"]) * 0.5
+    subset = body.vertex_subset(torch.nonzero(body.scene_vertices).flatten())
+    direction = torch.tensor([[1.0, -1, 1, -1, 1, -1], [-1.0, 1, 1, -1, -1, 1]])
+
+    def posed(step: float, expand: bool, free: bool = True, request=subset):
+        leaves = {k: v.clone() for k, v in params.items()}
+        with body.shape_expanded(leaves, subset) if expand else nullcontext():
+            leaves["shape"] += step * direction  # in place, as the optimiser steps
+            out = body({**leaves, "shape": leaves["shape"].requires_grad_(free)},
+                       vertices=request)
+        if not free:
+            return out.vertices, out.keypoints, None
+        (out.vertices.square().sum() + out.keypoints.square().sum()).backward()
+        return out.vertices.detach(), out.keypoints.detach(), leaves["shape"].grad
+
+    def apart(a, b) -> float:
+        return float((a - b).norm(dim=-1).max())
+
+    for step, bound in ((0.0, 1e-6), (0.05, 1e-4)):
+        expanded, exact = posed(step, True), posed(step, False)
+        assert apart(expanded[0], exact[0]) < bound
+        assert apart(expanded[1], exact[1]) < bound
+        gap = float((expanded[2] - exact[2]).norm() / exact[2].norm())
+        assert gap < (1e-5 if step == 0 else 0.03)  # the slope moves with the point
+    far = apart(posed(0.3, True)[0], posed(0.3, False)[0])
+    assert 1e-3 < far < 1e-2  # the expansion, not the model: second order shows at 0.3
+    assert apart(posed(0.3, True, free=False)[0], posed(0.3, False, free=False)[0]) < 1e-6
+    whole = body.vertex_subset(torch.arange(body.num_vertices))
+    assert apart(posed(0.3, True, request=whole)[0], posed(0.3, False, request=whole)[0]) < 1e-6
+    after = posed(0.3, False)
+    with body.shape_expanded(params, subset):
+        pass
+    assert apart(posed(0.3, False)[0], after[0]) < 1e-6
+    batch = {k: v.repeat(EXPANDED_ROWS, *[1] * (v.dim() - 1)) for k, v in params.items()}
+    with body.shape_expanded(batch, subset):
+        moved = {**batch, "shape": (batch["shape"] + 0.3).requires_grad_(True)}
+        assert apart(body(moved, vertices=subset).vertices,
+                     body({**moved, "shape": moved["shape"].detach()}, vertices=subset
+                          ).vertices) < 1e-6
 
 
 def test_translation_and_orientation(body):

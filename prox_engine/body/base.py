@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import torch
@@ -52,6 +54,15 @@ class BodyModel(ABC, torch.nn.Module):
         """Pose the body. Without ``vertices`` a model may skip the mesh (keypoints and
         spheres only), which is what most fitting stages need; with a
         :class:`VertexSubset` the output's vertices are those of the subset, in its order."""
+
+    @contextmanager
+    def shape_expanded(self, params: Params, vertices: bool | VertexSubset
+                       ) -> Iterator[None]:
+        """Within it, a model may compute what depends on the shape from its first-order
+        expansion about the shape of ``params``, for their rows and the ``vertices`` posed
+        in one optimisation (a model whose shape is linear, or cheap, has nothing to
+        gain)."""
+        yield
 
     def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
         """The vertices ``ids`` prepared for :meth:`forward` (a model that cannot pose a
