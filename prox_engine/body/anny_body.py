@@ -503,7 +503,7 @@ class AnnyBody(BodyModel):
         keys = ("bone_poses", "offsets", "anchors")
 
         def rest(row: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            values = self._rest(row[None], subset, cache=False)
+            values = self._rest(row[None], subset, fresh=True)
             return tuple(values[k][0] for k in keys) + (
                 (values[subset][0],) if subset is not None else ())
 
@@ -535,16 +535,16 @@ class AnnyBody(BodyModel):
             rest[vertices] = values[3]
         return rest
 
-    def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None, cache: bool = True
+    def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None, fresh: bool = False
               ) -> dict[str, torch.Tensor]:
         """Rest bone poses, keypoint anchors and (for a ``vertices`` subset, under the
         subset as key) rest vertices for shape logits, as anny's ``cached`` bone
-        orientation computes them; kept while the shape is frozen (with ``cache``), or
-        expanded about a point (see :meth:`shape_expanded`)."""
-        expanded = self._expanded(shape, vertices) if cache else None
+        orientation computes them; kept while the shape is frozen, or expanded about a
+        point (see :meth:`shape_expanded`), unless ``fresh``."""
+        expanded = None if fresh else self._expanded(shape, vertices)
         if expanded is not None:
             return expanded
-        cached = self._rest_cache if cache else None
+        cached = None if fresh else self._rest_cache
         frozen = not shape.requires_grad
         if not (frozen and cached is not None and torch.equal(cached["shape"], shape)):
             model = self.model
@@ -559,7 +559,7 @@ class AnnyBody(BodyModel):
             cached = {"shape": shape.detach().clone(), "coeffs": coeffs, "bone_poses": poses,
                       "offsets": self.skeleton.offsets(poses),
                       "anchors": anchors.view(len(coeffs), -1, 3)}
-            if frozen and cache:
+            if frozen and not fresh:
                 self._rest_cache = cached
         if vertices and vertices not in cached:
             cached[vertices] = vertices.data["template"] + torch.einsum(
