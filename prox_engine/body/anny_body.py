@@ -39,9 +39,8 @@ FINGER_BONES = [f"{b}.{s}" for s in SIDES for b in
                  "metacarpal3", "finger4-1", "finger4-2", "finger4-3", "metacarpal4",
                  "finger5-1", "finger5-2", "finger5-3"]]
 PHENOTYPES = ["gender", "age", "muscle", "weight", "height", "proportions"]
-# AnnyBody.shape_expanded expands the shape of up to this many rows (8 rows: an evaluation
-# 22.8 -> 17.8 ms, for 137 ms of expansions).
-EXPANDED_ROWS = 2
+# The rest quantities AnnyBody.shape_expanded expands (with the rest vertices).
+_EXPANDED = ("bone_poses", "offsets", "anchors")
 
 # Anatomical limits (radians) of each bone's axis-angle components (x, y, z) in its own
 # frame; signs measured on anny: hip flexion is -x, knee, elbow and trunk flexion +x,
@@ -490,30 +489,31 @@ class AnnyBody(BodyModel):
         anchors, the rest vertices of ``vertices``) are their first-order expansion about
         the shape of ``params`` (B, 6), one per row, found once by forward-mode autograd: a
         forward and backward on the scene terms' vertices then costs 3.0 ms instead of 7.8
-        (2.5 frozen), for 15 ms an expansion. A scene stage moves the logits by 0.1-0.2,
-        where the expansion is within half a millimetre of the model. Not for more than
-        EXPANDED_ROWS rows: a batch's evaluation reads the 136 blendshapes once for every
-        row, and the expansions would cost what they save."""
-        if len(params["shape"]) > EXPANDED_ROWS:
-            yield
-            return
+        (2.5 frozen), for 11 ms an expansion. A scene stage moves the logits by 0.1-0.2,
+        where the expansion is within half a millimetre of the model."""
         from torch.func import jacfwd
 
         subset = self._whole if vertices is True else vertices or None
-        keys = ("bone_poses", "offsets", "anchors")
-
-        def rest(row: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            values = self._rest(row[None], subset, fresh=True)
-            return tuple(values[k][0] for k in keys) + (
-                (values[subset][0],) if subset is not None else ())
-
         base = params["shape"].detach().clone()  # the optimiser moves the shape in place
-        points = [rest(row) for row in base]
-        slopes = [jacfwd(rest)(row) for row in base]
-        self._expansion = {
-            "shape": base, "subset": subset,
-            "at": [torch.stack(values) for values in zip(*points)],
-            "slope": [torch.stack(values) for values in zip(*slopes)]}
+        rows = torch.arange(len(base))
+
+        def skeleton(shape: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            values = self._rest(shape, None, fresh=True)
+            return (*(values[k] for k in _EXPANDED),
+                    self.phenotype_coefficients(torch.sigmoid(shape)))
+
+        def own(slope: torch.Tensor) -> torch.Tensor:
+            """(B, 6, n): each row's slope in its own shape, from (B, ..., B, 6)."""
+            return slope.diagonal(dim1=0, dim2=-2).movedim(-1, 0).flatten(1, -2).mT
+
+        *at, coeffs = skeleton(base)
+        *slopes, coeff_slope = (own(s) for s in jacfwd(skeleton)(base))  # coeffs: (B, 6, C)
+        if subset is not None:
+            blend = subset.data["blendshapes"]  # (C, V, 3)
+            at.append(subset.data["template"] + torch.einsum("bc,cvd->bvd", coeffs, blend))
+            slopes.append(coeff_slope @ blend.flatten(1))
+        self._expansion = {"shape": base, "subset": subset, "at": at,
+                           "slope": [s.contiguous() for s in slopes]}
         try:
             yield
         finally:
@@ -527,12 +527,12 @@ class AnnyBody(BodyModel):
         if (found is None or not shape.requires_grad or vertices is not found["subset"]
                 or shape.shape != found["shape"].shape):
             return None
-        step = shape - found["shape"]  # (B, 6)
-        values = [at + torch.einsum("b...s,bs->b...", slope, step)
+        step = (shape - found["shape"])[:, None]  # (B, 1, 6)
+        values = [at + (step @ slope).view(at.shape)
                   for at, slope in zip(found["at"], found["slope"])]
-        rest = dict(zip(("bone_poses", "offsets", "anchors"), values))
+        rest = dict(zip(_EXPANDED, values))
         if vertices is not None:
-            rest[vertices] = values[3]
+            rest[vertices] = values[-1]
         return rest
 
     def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None, fresh: bool = False
