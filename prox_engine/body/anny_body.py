@@ -487,15 +487,15 @@ class AnnyBody(BodyModel):
                        ) -> Iterator[None]:
         """Within it, a free shape's rest quantities (bone poses and offsets, keypoint
         anchors, the rest vertices of ``vertices``) are their first-order expansion about
-        the shape of ``params`` (B, 6), one per row, found once by forward-mode autograd: a
-        forward and backward on the scene terms' vertices then costs 3.0 ms instead of 7.8
-        (2.5 frozen), for 11 ms an expansion. A scene stage moves the logits by 0.1-0.2,
-        where the expansion is within half a millimetre of the model."""
+        the shape of ``params`` (B, 6), one per row, found for every row at once by
+        forward-mode autograd: a forward and backward on the scene terms' vertices then
+        costs 3.0 ms instead of 7.8 (2.5 frozen), for 12 ms an expansion; 8 rows 16.6 ms
+        instead of 25.4, for 55-63 ms. A scene stage moves the logits by 0.1-0.2, where the
+        expansion is within half a millimetre of the model."""
         from torch.func import jacfwd
 
         subset = self._whole if vertices is True else vertices or None
         base = params["shape"].detach().clone()  # the optimiser moves the shape in place
-        rows = torch.arange(len(base))
 
         def skeleton(shape: torch.Tensor) -> tuple[torch.Tensor, ...]:
             values = self._rest(shape, None, fresh=True)
