@@ -319,14 +319,15 @@ def _charge(result: FitResult, step: str, seconds: float, evaluations: float) ->
     result.stage_evaluations[step] = evaluations
 
 
-def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
-    return metrics.reprojection_error(result.keypoints, frame.keypoints, fitter.camera,
-                                      fitter.body.keypoint_mask, result.swapped)
-
-
 def _errors(fitter: Fitter, result: FitResult, frame: Frame) -> torch.Tensor:
+    """(25,) each body keypoint's pixel distance from the fit (metrics.keypoint_errors)."""
     return metrics.keypoint_errors(result.keypoints, frame.keypoints, fitter.camera,
                                    fitter.body.keypoint_mask, result.swapped)
+
+
+def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
+    """The fit's reprojection error (metrics.reprojection_error)."""
+    return float(_errors(fitter, result, frame).nanmean())
 
 
 def _chains(rec: Recording, names: list[str], anchor_seen: float,

@@ -19,6 +19,7 @@ from contextlib import contextmanager
 import numpy as np
 import roma
 import torch
+from torch.func import jacfwd
 
 from .. import assets
 from ..geometry import vertex_normals
@@ -492,9 +493,7 @@ class AnnyBody(BodyModel):
         costs 3.0 ms instead of 7.8 (2.5 frozen), for 12 ms an expansion; 8 rows 16.6 ms
         instead of 25.4, for 55-63 ms. A scene stage moves the logits by 0.1-0.2, where the
         expansion is within half a millimetre of the model."""
-        from torch.func import jacfwd
-
-        subset = self._whole if vertices is True else vertices or None
+        subset = self._subset(vertices)
         base = params["shape"].detach().clone()  # the optimiser moves the shape in place
 
         def skeleton(shape: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -518,6 +517,10 @@ class AnnyBody(BodyModel):
             yield
         finally:
             self._expansion = None
+
+    def _subset(self, vertices: bool | VertexSubset) -> VertexSubset | None:
+        """The vertices a ``vertices`` request poses: all, a subset, or none."""
+        return self._whole if vertices is True else vertices or None
 
     def _expanded(self, shape: torch.Tensor, vertices: VertexSubset | None
                   ) -> dict[str, torch.Tensor] | None:
@@ -576,7 +579,7 @@ class AnnyBody(BodyModel):
         return subset
 
     def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
-        subset = self._whole if vertices is True else vertices or None
+        subset = self._subset(vertices)
         rest = self._rest(params["shape"], subset)
         rotvecs = torch.cat([params["global_orient"][:, None], params["body_pose"],
                              params["hand_pose"]], 1)
