@@ -2,7 +2,8 @@
 
 anny's first build takes about a minute, peaks at 1.4 GB and writes ~0.8 GB of cache, so
 ``prox setup`` (run by ``make setup``) builds it once, bakes the float32 model data to a
-safetensors file, and warms warp's kernel cache; run time only loads that file.
+safetensors file, and warms warp's kernel cache (skinning, nearest faces); run time only
+loads that file.
 """
 from __future__ import annotations
 
@@ -74,9 +75,15 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
             os.replace(tmp, target)
         finally:
             shutil.rmtree(build_dir, ignore_errors=True)
-    from .body.anny_body import AnnyBody
+    import torch
 
-    say("compiling the skinning kernel (cached after the first time) ...")
+    from .body.anny_body import AnnyBody
+    from .nearest_face import nearest_faces
+
+    say("compiling the skinning and nearest-face kernels (cached after the first time) ...")
     body = AnnyBody.load()  # compiles and caches the skinning kernel
     body(body.init_params(1))
+    triangle = torch.eye(3, dtype=torch.float64)[None]
+    nearest_faces(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.int64),
+                  triangle, triangle[:, 0])
     return target

@@ -4,51 +4,6 @@ from __future__ import annotations
 import torch
 
 
-def closest_point_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
-                               c: torch.Tensor) -> torch.Tensor:
-    """Closest points on triangles (a, b, c) to points p, all (..., 3); differentiable.
-
-    Ericson, Real-Time Collision Detection, 5.1.5, vectorised with the Voronoi regions
-    resolved by masks: vertex regions first, then edges, then the face interior.
-    """
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-    bp = p - b
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-    cp = p - c
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
-
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    tiny = torch.finfo(p.dtype).tiny
-
-    # Face interior (default).
-    denom = (va + vb + vc).clamp_min(tiny)
-    v = vb / denom
-    w = vc / denom
-    result = a + ab * v[..., None] + ac * w[..., None]
-
-    def pick(mask: torch.Tensor, point: torch.Tensor) -> None:
-        nonlocal result
-        result = torch.where(mask[..., None], point, result)
-
-    # Edges (bc, ac, ab), then vertices, later picks overriding earlier ones.
-    e_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6)).clamp_min(tiny)
-    pick(e_bc, b + (c - b) * t_bc[..., None])
-    e_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    t_ac = d2 / (d2 - d6).clamp_min(tiny)
-    pick(e_ac, a + ac * t_ac[..., None])
-    e_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    t_ab = d1 / (d1 - d3).clamp_min(tiny)
-    pick(e_ab, a + ab * t_ab[..., None])
-    pick((d6 >= 0) & (d5 <= d6), c)
-    pick((d3 >= 0) & (d4 <= d3), b)
-    pick((d1 <= 0) & (d2 <= 0), a)
-    return result
-
-
 def face_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Unit normals (F, 3) of triangles, or (B, F, 3) for batched vertices (B, V, 3)."""
     tri = vertices[..., faces, :]

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
-from .geometry import closest_point_on_triangles
+from .nearest_face import nearest_faces
 from .output import atomic_write_bytes, atomic_write_text
 
 
@@ -191,21 +191,7 @@ def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: n
         query = np.nan_to_num(points.detach().cpu().numpy(), nan=0.0, posinf=1e6, neginf=-1e6)
         _, nearest = tree.query(query, k=k, workers=torch.get_num_threads())
         cand = torch.from_numpy(sample_face[nearest].reshape(len(points), k))  # N, k
-        p = exact[:, None].expand(-1, k, -1)
-        t = tri[cand]  # N, k, 3, 3
-        closest = closest_point_on_triangles(p, t[:, :, 0], t[:, :, 1], t[:, :, 2])
-        diff = p - closest
-        dist = diff.pow(2).sum(-1).sqrt()
-        plane = (diff * normals[cand]).sum(-1)
-        best = dist.min(dim=1, keepdim=True).values
-        score = torch.where(dist <= best + 1e-6, plane.abs(), torch.full_like(plane, -1.0))
-        choice = score.argmax(dim=1, keepdim=True)
-        if areas is None:
-            sign = torch.sign(plane.gather(1, choice)).squeeze(1)
-        else:
-            sign = torch.sign((areas[cand] * plane / dist.clamp_min(1e-12)).sum(1))
-        sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-        closest = closest[torch.arange(len(points)), choice.squeeze(1)]
+        closest, sign = nearest_faces(exact.detach(), cand, tri, normals, areas)
     distance = ((exact - closest).pow(2).sum(-1) + 1e-14).sqrt()
     return distance * sign, closest
 

@@ -1,0 +1,122 @@
+"""The nearest of each point's candidate triangles and the sign it gives, in one warp kernel.
+
+Ericson's closest point on a triangle and the choice of
+:func:`scene_sdf.triangle_signed_distance`, in float64, but per point in one pass: torch
+spent 13 ms of a 30 ms query of 17,000 points on the forty elementwise passes over their
+(N, k, 3) candidates. warp is anny's own kernel compiler; ``prox setup`` warms its cache.
+"""
+from __future__ import annotations
+
+import functools
+
+import torch
+import warp as wp
+
+from .assets import configure_warp
+
+# Candidates whose distance is within this (m) of the nearest tie: the one whose plane the
+# point is farthest from decides the sign (right on convex and concave edges alike).
+TIE = 1e-6
+
+
+@wp.func
+def _closest(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.vec3d:
+    """Ericson's closest point on triangle abc, the regions in the priority of the torch
+    version's masks (vertices a, b, c, then edges ab, ac, bc, then the face)."""
+    tiny = wp.float64(2.2250738585072014e-308)
+    zero = wp.float64(0.0)
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    if d1 <= zero and d2 <= zero:
+        return a
+    if d3 >= zero and d4 <= d3:
+        return b
+    if d6 >= zero and d5 <= d6:
+        return c
+    if vc <= zero and d1 >= zero and d3 <= zero:
+        return a + ab * (d1 / wp.max(d1 - d3, tiny))
+    if vb <= zero and d2 >= zero and d6 <= zero:
+        return a + ac * (d2 / wp.max(d2 - d6, tiny))
+    if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
+        return b + (c - b) * ((d4 - d3) / wp.max((d4 - d3) + (d5 - d6), tiny))
+    denom = wp.max(va + vb + vc, tiny)
+    return a + ab * (vb / denom) + ac * (vc / denom)
+
+
+@wp.kernel
+def _nearest(points: wp.array(dtype=wp.vec3d), candidates: wp.array2d(dtype=wp.int64),
+             corners: wp.array2d(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
+             areas: wp.array(dtype=wp.float64), vote: int,
+             closest: wp.array(dtype=wp.vec3d), sign: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    p = points[i]
+    k = candidates.shape[1]
+    best = wp.float64(1e300)
+    for j in range(k):
+        f = candidates[i, j]
+        best = wp.min(best, wp.length(p - _closest(p, corners[f, 0], corners[f, 1],
+                                                   corners[f, 2])))
+    score = wp.float64(-2.0)
+    chosen = wp.vec3d()
+    plane_of_chosen = wp.float64(0.0)
+    ballot = wp.float64(0.0)
+    for j in range(k):
+        f = candidates[i, j]
+        q = _closest(p, corners[f, 0], corners[f, 1], corners[f, 2])
+        dist = wp.length(p - q)
+        plane = wp.dot(p - q, normals[f])
+        tied = wp.where(dist <= best + wp.float64(TIE), wp.abs(plane), wp.float64(-1.0))
+        if tied > score:
+            score = tied
+            chosen = q
+            plane_of_chosen = plane
+        if vote != 0:
+            ballot += areas[f] * plane / wp.max(dist, wp.float64(1e-12))
+    decided = wp.where(vote != 0, ballot, plane_of_chosen)
+    closest[i] = chosen
+    sign[i] = wp.where(decided < wp.float64(0.0), wp.float64(-1.0), wp.float64(1.0))
+
+
+def nearest_faces(points: torch.Tensor, candidates: torch.Tensor, triangles: torch.Tensor,
+                  normals: torch.Tensor, areas: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """For points (N, 3) float64 and their ``candidates`` (N, k) int64 indices into
+    ``triangles`` (F, 3, 3) float64 with unit ``normals`` (F, 3): the nearest point (N, 3)
+    on the nearest candidate, and the sign (N,) of the point's side, read from that
+    candidate's plane (of the candidates tied within TIE, the farthest plane) or, with face
+    ``areas`` (F,), by every candidate's vote weighted by its area and by how squarely it
+    faces the point; a point exactly on the plane is outside (+1)."""
+    _started()
+    n = len(points)
+    closest = torch.empty((n, 3), dtype=torch.float64)
+    sign = torch.empty(n, dtype=torch.float64)
+    if n == 0:
+        return closest, sign
+    vote = areas is not None
+    wp.launch(_nearest, dim=n, device="cpu", inputs=[
+        wp.from_torch(points.double().contiguous(), dtype=wp.vec3d),
+        wp.from_torch(candidates.contiguous(), dtype=wp.int64),
+        wp.from_torch(triangles.contiguous(), dtype=wp.vec3d),
+        wp.from_torch(normals.contiguous(), dtype=wp.vec3d),
+        wp.from_torch((areas if vote else normals[:, 0]).contiguous(), dtype=wp.float64),
+        int(vote), wp.from_torch(closest, dtype=wp.vec3d),
+        wp.from_torch(sign, dtype=wp.float64)])
+    return closest, sign
+
+
+@functools.cache
+def _started() -> None:
+    """warp started the project's way (its kernel cache, no banner), once."""
+    configure_warp()
