@@ -2,6 +2,7 @@
 with strong Wolfe line search), for a batch of frames or warm-started from a previous fit."""
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
@@ -419,12 +420,34 @@ class Fitter:
         score = sum(v for k, v in terms.items()
                     if (priors or k not in POSTURE_PRIORS) and k not in UNRANKED)
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
-            scale, cost = self._scale_search(params, detected)
-            if self.config.start_choice_size:
-                cost = cost + size_prior(scale)
-            score = score + self.config.start_scene_weight * cost
+            score = score + self.config.start_scene_weight * self._scene_costs(
+                params, detected, score, counts)
         return [group.start + int(score[group].argmin())
                 for group in lbfgs.sized_groups(counts)]
+
+    def _scene_costs(self, params: Params, detected: torch.Tensor, score: torch.Tensor,
+                     counts: list[int]) -> torch.Tensor:
+        """Per candidate row (``counts`` per frame), how badly it can meet the scene at
+        its best scale: :meth:`_scale_search`'s cost, plus, with ``start_choice_size``,
+        the size prior there. That sum is what the search minimises, so each frame's rows
+        are then searched in the order of their ``score`` (the objective), each skipping
+        the scales at which it cannot beat its frame's best so far: the same choice, for
+        a fifth fewer scales evaluated on the speed benchmark."""
+        search = self._scale_searcher(params, detected)
+        if not self.config.start_choice_size:
+            return search(torch.arange(len(score)))[1]
+        weight = self.config.start_scene_weight
+        frame = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+        ranked = [group.start + score[group].argsort(stable=True)
+                  for group in lbfgs.sized_groups(counts)]
+        best = torch.full((len(counts),), math.inf)  # each frame's least total so far
+        costs = torch.empty_like(score)
+        for rank in range(max(counts)):
+            rows = torch.stack([order[rank] for order in ranked if rank < len(order)])
+            scale, cost = search(rows, (best[frame[rows]] - score[rows]) / weight)
+            costs[rows] = cost + size_prior(scale)
+            best.scatter_reduce_(0, frame[rows], score[rows] + weight * costs[rows], "amin")
+        return costs
 
     def _leg_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
         """Copies of ``rows.params`` with a leg turned until its ankle lies on the other
@@ -640,6 +663,13 @@ class Fitter:
         with the joints the detector clearly saw (``detected`` (B, 25), its confidences)
         in view and the legs it reports faintly out of it, and that scale's cost (see
         :mod:`scale_search`)."""
+        return self._scale_searcher(params, detected)(torch.arange(len(detected)))
+
+    def _scale_searcher(self, params: Params, detected: torch.Tensor
+                        ) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+        """:meth:`_scale_search` of the bodies ``params`` posed once, searched for the
+        ``rows`` asked, each under its total's ceiling where ``ceilings`` are given
+        (:func:`scale_search.best_scale`)."""
         cfg, body = self.config, self.body
         with torch.no_grad():
             out = body(params)
@@ -650,14 +680,18 @@ class Fitter:
         seen = [joints[b, seen[b]] for b in range(len(joints))]
         faint = [joints[b, faint[b]] for b in range(len(joints))]
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
-        scale, cost = best_scale(vertices, normals, body.scene_vertices, self.carrying,
-                                 self.contact_part_ids,
-                                 self.scene, cfg.uses("contact"), cfg.uses("penetration"),
-                                 cfg.contact_rho, cfg.contact_max_angle,
-                                 cfg.contact_max_distance, cfg.scale_support,
-                                 seen if cfg.scale_visibility else None, self.toes, axes,
-                                 faint if cfg.scale_faint_legs else None)
-        return scale, cost
+
+        def search(rows: torch.Tensor, ceilings: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+            return best_scale(vertices[rows], normals[rows], body.scene_vertices, self.carrying,
+                              self.contact_part_ids, self.scene, cfg.uses("contact"),
+                              cfg.uses("penetration"), cfg.contact_rho, cfg.contact_max_angle,
+                              cfg.contact_max_distance, cfg.scale_support,
+                              [seen[r] for r in rows] if cfg.scale_visibility else None,
+                              self.toes, None if axes is None else axes[rows],
+                              [faint[r] for r in rows] if cfg.scale_faint_legs else None,
+                              ceilings)
+        return search
 
     def _faint_legs(self, detected: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
         """(..., 25) bool: the knees and ankles the detector reports under HIDDEN

@@ -132,8 +132,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                max_distance: float, use_support: bool = True,
                seen_joints: list[torch.Tensor] | None = None,
                toes: torch.Tensor | None = None, axes: torch.Tensor | None = None,
-               faint_joints: list[torch.Tensor] | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+               faint_joints: list[torch.Tensor] | None = None,
+               ceilings: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
@@ -148,7 +148,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     per part. Returns (B,) scales and (B,) their costs without the size prior (0: every
     part touches, nothing enters, the body rests on a surface): how well the body can meet
     the scene at all, comparable between bodies fitted at different sizes. Scales that
-    cannot win are not evaluated (:func:`bounded_search`)."""
+    cannot win are not evaluated (:func:`bounded_search`), nor those whose total (cost
+    and size prior) cannot go under the body's ``ceilings`` ((B,)): a body whose total
+    cannot returns one over its ceiling, or scale 1 and an infinite cost."""
     prior = size_prior(SCALES)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     carrying = carrying[sampled]
@@ -189,7 +191,12 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
             rays = rays + VISIBILITY_WEIGHT * _ray_share(seen_joints[b], scene, behind=True)
         if faint_joints is not None:
             rays = rays + FAINT_WEIGHT * _ray_share(faint_joints[b], scene, behind=False)
-        picked, cost = bounded_search(cost_at, rays, prior)
+        picked, cost = bounded_search(cost_at, rays, prior,
+                                      math.inf if ceilings is None else float(ceilings[b]))
+        if len(picked) == 0:
+            best.append(torch.tensor(1.0))
+            lowest_cost.append(torch.tensor(math.inf))
+            continue
         pick = int((cost + prior[picked]).argmin())
         best.append(SCALES[picked[pick]])
         lowest_cost.append(cost[pick])
@@ -202,15 +209,18 @@ def size_prior(scales: torch.Tensor) -> torch.Tensor:
 
 
 def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], rays: torch.Tensor,
-                   prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                   prior: torch.Tensor, ceiling: float = math.inf
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """The indices into SCALES (ascending) at which the search evaluates ``cost_at``
     (indices -> (S,) costs >= 0 of contact, penetration and support) and their costs
     with ``rays`` (97,) added. The other terms being >= 0, ``rays`` plus the size
     ``prior`` (97,) bounds each scale's total from below: scales are evaluated CHUNK at
     a time in the order of that bound, and those whose bound exceeds the lowest total
-    found are not, since they cannot win. The same pick as evaluating every scale."""
+    found, or the ``ceiling``, are not, since they cannot win. The same pick as
+    evaluating every scale, where it is under the ceiling; none (empty) where no bound
+    is."""
     bound = rays + prior
-    best_total = torch.tensor(float("inf"))
+    best_total = torch.tensor(ceiling)
     picked, costs = [], []
     for chunk in bound.argsort().split(CHUNK):
         chunk = chunk[bound[chunk] <= best_total]
@@ -220,6 +230,8 @@ def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], rays: torch.
         best_total = torch.minimum(best_total, (cost + prior[chunk]).min())
         picked.append(chunk)
         costs.append(cost)
+    if not picked:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0)
     picked, cost = torch.cat(picked), torch.cat(costs)
     order = picked.argsort()  # ties go to the smaller scale, as over the whole grid
     return picked[order], cost[order]

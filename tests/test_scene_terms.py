@@ -775,7 +775,9 @@ def test_penetration_reads_one_scene_vertex_per_centimetre(body):
 def test_scale_search_skips_only_scales_that_cannot_win():
     """The search skips scales whose size prior and hidden joints alone exceed the best
     total found: on jagged costs (a one-scale valley, as contact parts switching on make)
-    it picks what the whole grid picks, and evaluates fewer scales the better the best."""
+    it picks what the whole grid picks, and evaluates fewer scales the better the best;
+    under a ceiling on the total, the same where the least total is under it, and no
+    total under it where it is not."""
     from prox_engine.scale_search import SCALES, bounded_search
 
     count = len(SCALES)
@@ -796,6 +798,18 @@ def test_scale_search_skips_only_scales_that_cannot_win():
         assert torch.equal(cost, costs[picked] + hidden[picked])
         whole = costs + hidden + prior
         assert int(picked[(cost + prior[picked]).argmin()]) == int(whole.argmin())
+        # under a ceiling above the least total: the same pick from fewer scales; below
+        # it: no total under the ceiling (the caller's other candidate wins), and no
+        # scale at all where every bound is over it
+        least, everywhere = float(whole.min()), len(evaluated)
+        evaluated.clear()
+        capped, cost = bounded_search(cost_at, hidden, prior, least + 0.05)
+        assert int(capped[(cost + prior[capped]).argmin()]) == int(whole.argmin())
+        assert len(evaluated) <= everywhere
+        capped, cost = bounded_search(cost_at, hidden, prior, least - 1e-3)
+        assert len(capped) == 0 or float((cost + prior[capped]).min()) > least - 1e-3
+        below = float((hidden + prior).min()) - 1e-3
+        assert len(bounded_search(cost_at, hidden, prior, below)[0]) == 0
     costs = torch.ones(count)
     costs[48] = 0.0  # a body that meets the scene at its fitted size
     picked, _ = bounded_search(lambda i: costs[i], torch.zeros(count), prior)
