@@ -83,7 +83,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     say("compiling the skinning and nearest-face kernels (cached after the first time) ...")
     body = AnnyBody.load()  # compiles and caches the skinning kernel
     body(body.init_params(1))
-    triangle = torch.eye(3, dtype=torch.float64)[None]
+    triangle = torch.eye(3, dtype=torch.float64)[None]  # compiles the nearest-face kernel
     nearest_faces(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.int64),
                   triangle, triangle[:, 0])
     return target

@@ -1,4 +1,4 @@
-"""Small geometry kernels shared by the SDF builder, the contact term and the metrics."""
+"""Small geometry kernels: body normals, axis-angle rotations, camera rays."""
 from __future__ import annotations
 
 import torch
