@@ -106,12 +106,13 @@ def nearest_faces(points: torch.Tensor, candidates: torch.Tensor, triangles: tor
     if n == 0:
         return closest, sign
     vote = areas is not None
+    unread = sign[:0]  # the kernel reads no areas without a vote
     wp.launch(_nearest, dim=n, device="cpu", inputs=[
         wp.from_torch(points.double().contiguous(), dtype=wp.vec3d),
         wp.from_torch(candidates.contiguous(), dtype=wp.int64),
         wp.from_torch(triangles.contiguous(), dtype=wp.vec3d),
         wp.from_torch(normals.contiguous(), dtype=wp.vec3d),
-        wp.from_torch((areas if vote else normals[:, 0]).contiguous(), dtype=wp.float64),
+        wp.from_torch(areas.contiguous() if vote else unread, dtype=wp.float64),
         int(vote), wp.from_torch(closest, dtype=wp.vec3d),
         wp.from_torch(sign, dtype=wp.float64)])
     return closest, sign
