@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field, replace
 from typing import Callable
@@ -382,8 +382,9 @@ class Fitter:
         undone = rows.taken(broke)
         undone.params = {k: v[broke] for k, v in kept.items()}
         with torch.no_grad():
-            redone = self._terms(stage, self.body(undone.params, vertices=self._mesh_read(stage)),
-                                 undone.params, undone.target, undone.conf, undone.depth, None)
+            redone = self._terms(stage, undone.params, undone.target, undone.conf,
+                                 undone.depth, None)(
+                self.body(undone.params, vertices=self._mesh_read(stage)))
         index = torch.tensor(broke)
         for name, value in undone.params.items():
             rows.params[name] = rows.params[name].index_copy(0, index, value)
@@ -560,54 +561,76 @@ class Fitter:
         data = torch.tensor(np.stack([f.keypoints.data for f in frames]), dtype=torch.float32)
         return data[..., :2], data[..., 2] * self.body.keypoint_mask
 
-    def _data_term(self, stage: Stage, out: BodyOutput, target: torch.Tensor,
-                   conf: torch.Tensor) -> torch.Tensor:
-        """The stage's weighted robust reprojection error (B,) of the keypoints ``target``
-        (B, K, 2) with confidences ``conf`` (B, K)."""
+    def _keypoint_weights(self, stage: Stage, conf: torch.Tensor) -> torch.Tensor:
+        """(B, K) the data term's weight of each keypoint with confidences ``conf`` (B, K)
+        in ``stage``: (its part's weight * confidence)^2, as in SMPLify-X."""
         w = stage.weights
         joint_weight = torch.zeros_like(conf)
         joint_weight[:, BODY] = w.get("body", 0)
         joint_weight[:, LEFT_HAND] = w.get("hands", 0)
         joint_weight[:, RIGHT_HAND] = w.get("hands", 0)
         joint_weight[:, FACE] = w.get("face", 0)
-        return losses.keypoint_data(out, self.camera, target, (joint_weight * conf) ** 2,
-                                    self.config.data_rho)
+        return (joint_weight * conf) ** 2
 
-    def _terms(self, stage: Stage, out: BodyOutput, params: Params, target: torch.Tensor,
-               conf: torch.Tensor, depth: list, previous: torch.Tensor | None
-               ) -> dict[str, torch.Tensor]:
-        """Weighted value (B,) of every active term of a stage."""
+    def _data_term(self, stage: Stage, out: BodyOutput, target: torch.Tensor,
+                   conf: torch.Tensor) -> torch.Tensor:
+        """The stage's weighted robust reprojection error (B,) of the keypoints ``target``
+        (B, K, 2) with confidences ``conf`` (B, K)."""
+        return losses.keypoint_data(out, self.camera, target,
+                                    self._keypoint_weights(stage, conf), self.config.data_rho)
+
+    def _terms(self, stage: Stage, params: Params, target: torch.Tensor, conf: torch.Tensor,
+               depth: list, previous: torch.Tensor | None, free: Sequence[str] = ()
+               ) -> Callable[[BodyOutput], dict[str, torch.Tensor]]:
+        """The weighted value (B,) of every active term of a stage, as a function of the
+        posed body (``params``). What stays put while the stage runs is worked out here,
+        once: the keypoints' weights, which frames see an ankle, which legs are cut off,
+        and the priors of parameters not ``free`` (a warm-started frame's shape)."""
         w = stage.weights
         cfg, body = self.config, self.body
-        terms = {"data": self._data_term(stage, out, target, conf),
-                 "joint_limits": cfg.joint_limit_weight * body.joint_limits(params)}
-        priors = {"pose_prior": body.pose_prior, "shape": body.shape_prior,
-                  "bending": body.bending_prior, "hand_prior": body.hand_prior}
-        for name, prior in priors.items():
-            if w.get(name, 0) > 0:
-                terms[name] = w[name] ** (2 if cfg.squared_priors else 1) * prior(params)
-        if cfg.upright_weight > 0:
-            terms["upright"] = cfg.upright_weight * ankle_seen(conf) * losses.upright(
-                out, self.up, cfg.upright_rho)
-        if cfg.level_weight > 0:
-            terms["level"] = cfg.level_weight * losses.level(out, self.up, cfg.level_rho)
-        if cfg.plumb_shin_weight > 0:
-            terms["plumb_shins"] = cfg.plumb_shin_weight * losses.plumb_shins(
-                out, self.up, cut_legs(conf))
-        if w.get("self_penetration", 0) > 0:
-            terms["self_penetration"] = w["self_penetration"] * losses.self_penetration(out, body)
-        if w.get("penetration", 0) > 0:
-            terms["penetration"] = w["penetration"] * losses.penetration(
-                self._scene_view(out), *self.penetration_vertices, self.scene,
-                self.penetration_tolerance)
-        if w.get("contact", 0) > 0 and self.contact_normals is not None:
-            terms["contact"] = w["contact"] * losses.contact(
-                self._scene_view(out), self.scene, self.contact_normals, cfg.contact_rho,
-                cfg.contact_max_angle, cfg.contact_max_distance, self.contact_sink)
-        if w.get("depth", 0) > 0 and any(d is not None for d in depth):
-            terms["depth"] = w["depth"] * losses.depth_data(out, body, depth, cfg.depth_rho)
-        if w.get("temporal", 0) > 0 and previous is not None:
-            terms["temporal"] = w["temporal"] * losses.temporal(out, previous)
+        weights = self._keypoint_weights(stage, conf)
+        upright = cfg.upright_weight * ankle_seen(conf)
+        cut = cut_legs(conf)
+        priors = {"pose_prior": (body.pose_prior, body.pose_group()),
+                  "shape": (body.shape_prior, body.shape_group()),
+                  "bending": (body.bending_prior, body.pose_group()),
+                  "hand_prior": (body.hand_prior, ["hand_pose"])}
+        priors = {name: (w[name] ** (2 if cfg.squared_priors else 1), prior, reads)
+                  for name, (prior, reads) in priors.items() if w.get(name, 0) > 0}
+        with torch.no_grad():
+            fixed = {name: weight * prior(params) for name, (weight, prior, reads)
+                     in priors.items() if not set(reads) & set(free)}
+
+        def terms(out: BodyOutput) -> dict[str, torch.Tensor]:
+            values = {"data": losses.keypoint_data(out, self.camera, target, weights,
+                                                   cfg.data_rho),
+                      "joint_limits": cfg.joint_limit_weight * body.joint_limits(params)}
+            for name, (weight, prior, _) in priors.items():
+                values[name] = fixed[name] if name in fixed else weight * prior(params)
+            if cfg.upright_weight > 0:
+                values["upright"] = upright * losses.upright(out, self.up, cfg.upright_rho)
+            if cfg.level_weight > 0:
+                values["level"] = cfg.level_weight * losses.level(out, self.up, cfg.level_rho)
+            if cfg.plumb_shin_weight > 0:
+                values["plumb_shins"] = cfg.plumb_shin_weight * losses.plumb_shins(
+                    out, self.up, cut)
+            if w.get("self_penetration", 0) > 0:
+                values["self_penetration"] = (w["self_penetration"]
+                                              * losses.self_penetration(out, body))
+            if w.get("penetration", 0) > 0:
+                values["penetration"] = w["penetration"] * losses.penetration(
+                    self._scene_view(out), *self.penetration_vertices, self.scene,
+                    self.penetration_tolerance)
+            if w.get("contact", 0) > 0 and self.contact_normals is not None:
+                values["contact"] = w["contact"] * losses.contact(
+                    self._scene_view(out), self.scene, self.contact_normals, cfg.contact_rho,
+                    cfg.contact_max_angle, cfg.contact_max_distance, self.contact_sink)
+            if w.get("depth", 0) > 0 and any(d is not None for d in depth):
+                values["depth"] = w["depth"] * losses.depth_data(out, body, depth,
+                                                                 cfg.depth_rho)
+            if w.get("temporal", 0) > 0 and previous is not None:
+                values["temporal"] = w["temporal"] * losses.temporal(out, previous)
+            return values
         return terms
 
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
@@ -617,10 +640,10 @@ class Fitter:
         of rows) settles; returns the terms at the accepted points (not at the line
         search's last probes)."""
         mesh = self._mesh_read(stage)
+        terms_of = self._terms(stage, params, target, conf, depth, previous, free)
 
         def terms() -> dict[str, torch.Tensor]:
-            return self._terms(stage, self.body(params, vertices=mesh), params, target, conf,
-                               depth, previous)
+            return terms_of(self.body(params, vertices=mesh))
 
         def objective() -> Callable[[slice], torch.Tensor]:
             values = terms()

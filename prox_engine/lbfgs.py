@@ -55,9 +55,10 @@ def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[s
     coroutines = [_calls(_flat(variables, rows), max_iter, max_calls, ftol, history)
                   for rows in groups]
     asked = {i: next(c) for i, c in enumerate(coroutines)}
+    resting = dict(asked)  # each group's rows hold a point evaluated without failing
     failed = [False] * len(groups)
     while asked:
-        answers = _evaluate(variables, objective, groups, asked)
+        answers = _evaluate(variables, objective, groups, asked, resting)
         for i, answer in answers.items():
             try:
                 asked[i] = coroutines[i].send(answer)
@@ -69,30 +70,31 @@ def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[s
 
 
 def _evaluate(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
-              asked: dict[int, torch.Tensor]) -> dict[int, Evaluation]:
-    """Each asking group's loss and flat gradient at its point, in one evaluation (rows
-    of the other groups stay where they are). A group whose point is not finite gets
-    None, and so does one whose point makes the objective raise (found by evaluating the
-    groups one by one, which only happens then)."""
-    current = {i: _flat(variables, groups[i]) for i in asked}
+              asked: dict[int, torch.Tensor], resting: dict[int, torch.Tensor]
+              ) -> dict[int, Evaluation]:
+    """Each asking group's loss and flat gradient at its point, in one evaluation; its rows
+    then rest there (``resting``: every running group asks each round, so no group's rows
+    need putting back). A group whose point is not finite gets None, and so does one whose
+    point makes the objective raise (found by evaluating the groups one by one from their
+    resting points, which only happens then)."""
     finite = {i: x for i, x in asked.items() if bool(torch.isfinite(x).all())}
     answers: dict[int, Evaluation] = {i: None for i in asked if i not in finite}
     try:
-        answers.update(_answers(variables, objective, groups, finite, current))
+        answers.update(_answers(variables, objective, groups, finite, resting))
     except (IndexError, ValueError):
         for i, x in finite.items():
             try:
-                answers.update(_answers(variables, objective, groups, {i: x}, current))
+                answers.update(_answers(variables, objective, groups, {i: x}, resting))
             except (IndexError, ValueError):
                 answers[i] = None
     return answers
 
 
 def _answers(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
-             points: dict[int, torch.Tensor], current: dict[int, torch.Tensor]
+             points: dict[int, torch.Tensor], resting: dict[int, torch.Tensor]
              ) -> dict[int, tuple[float, torch.Tensor]]:
-    """Loss and flat gradient of the groups at ``points``, which are then put back to
-    their ``current`` points."""
+    """Loss and flat gradient of the groups at ``points``, where their rows then rest;
+    if the evaluation raises, they are put back to their ``resting`` points first."""
     if not points:
         return {}
     for i, x in points.items():
@@ -102,9 +104,11 @@ def _answers(variables: list[torch.Tensor], objective: Objective, groups: list[s
             loss_of = objective()
             losses = {i: loss_of(groups[i]) for i in points}
             grads = torch.autograd.grad(sum(losses.values()), variables, allow_unused=True)
-    finally:
+    except BaseException:
         for i in points:
-            _assign(variables, groups[i], current[i])
+            _assign(variables, groups[i], resting[i])
+        raise
+    resting.update(points)
     grads = [g if g is not None else torch.zeros_like(v) for g, v in zip(grads, variables)]
     return {i: (float(loss.detach()), torch.cat([g[groups[i]].reshape(-1) for g in grads]))
             for i, loss in losses.items()}

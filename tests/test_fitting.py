@@ -203,11 +203,11 @@ def test_upright_term_spares_frames_cut_off_at_the_knees(body):
     conf[1, [11, 14, 19, 20, 21, 22, 23, 24]] = 0.0  # cut off below the knees
     params = body.init_params(2)
     target = CAMERA.project(out.keypoints)[..., :2]
-    terms = fitter._terms(config.stages[0], out, params, target, conf, [None, None], None)
+    terms = fitter._terms(config.stages[0], params, target, conf, [None, None], None)(out)
     assert float(terms["upright"][0]) > 0 and float(terms["upright"][1]) == 0
     config.upright_weight = 0.0
-    assert "upright" not in fitter._terms(config.stages[0], out, params, target, conf,
-                                          [None, None], None)
+    assert "upright" not in fitter._terms(config.stages[0], params, target, conf,
+                                          [None, None], None)(out)
 
 
 def test_cut_off_shins_are_drawn_plumb(body):
@@ -265,7 +265,7 @@ def test_plumb_shins_act_only_on_cut_legs(body):
     conf[1, [11, 22, 23, 24]] = 0.0
     params = body.init_params(2)
     target = CAMERA.project(out.keypoints)[..., :2]
-    terms = fitter._terms(config.stages[0], out, params, target, conf, [None, None], None)
+    terms = fitter._terms(config.stages[0], params, target, conf, [None, None], None)(out)
     assert float(terms["plumb_shins"][0]) == 0.0
     expected = config.plumb_shin_weight * plumb_shins(out, fitter.up,
                                                       torch.tensor([[True, False]] * 2))
@@ -600,11 +600,34 @@ def test_stage_reports_terms_at_the_accepted_point(body):
     target, conf = fitter._targets([frame])
     conf[:, config.ignore_keypoints] = 0
     with torch.no_grad():
-        terms = fitter._terms(config.stages[0], body(result.params), result.params, target,
-                              conf, [None], None)
+        terms = fitter._terms(config.stages[0], result.params, target, conf, [None],
+                              None)(body(result.params))
     for name, value in terms.items():
         assert result.losses[name] == pytest.approx(float(value), rel=1e-4, abs=1e-6), name
 
+
+
+def test_priors_of_held_parameters_are_read_once_with_the_same_values(body):
+    """A stage's terms read the priors of the parameters it does not free once, before it
+    runs: the same values as read at every evaluation, in the same order, and without a
+    gradient."""
+    stage = Stage("scene", {"body": 1.0, "pose_prior": 1.0, "shape": 3.0, "bending": 3.0,
+                            "hand_prior": 5.0})
+    fitter = Fitter(body, CAMERA, FitConfig("held", [stage]))
+    params = body.init_params(2, "sitting")
+    params["shape"] = torch.randn(2, params["shape"].shape[1])
+    target, conf = torch.rand(2, len(body.keypoint_mask), 2) * 500, torch.rand(2, len(
+        body.keypoint_mask))
+    every = ["transl", "global_orient", *body.pose_group(), *body.shape_group(), "hand_pose"]
+    params["shape"].requires_grad_(True)
+    out = body(params, vertices=False)
+    freed = fitter._terms(stage, params, target, conf, [None, None], None, every)(out)
+    held = fitter._terms(stage, params, target, conf, [None, None], None,
+                         [n for n in every if n not in body.shape_group()])(out)
+    assert list(freed) == list(held)
+    for name in freed:
+        assert torch.equal(freed[name], held[name]), name
+    assert freed["shape"].requires_grad and not held["shape"].requires_grad
 
 def test_stage_stops_after_the_call_that_settles(body):
     """With a tolerance every change meets, a stage makes one L-BFGS call however many it
@@ -1148,8 +1171,8 @@ def test_the_start_choice_leaves_out_the_arms(body):
                      conf[:, :25].repeat(2, 1) > 0.5, [None, None], [(), ()])
         stage = config.stages[config.start_stages - 1]
         with torch.no_grad():
-            terms = fitter._terms(stage, body(params, vertices=False), params, rows.target,
-                                  rows.conf, rows.depth, None)
+            terms = fitter._terms(stage, params, rows.target, rows.conf, rows.depth,
+                                  None)(body(params, vertices=False))
         assert float(terms["data"][0]) > 3 * float(terms["data"][1])  # the arm costs most
         choice = _Choice(config.start_stages, priors=config.start_choice_priors,
                          arms=config.start_choice_arms)

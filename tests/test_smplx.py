@@ -394,7 +394,7 @@ def test_smplx_resolves_its_own_configurations_with_prox_weights(smplx):
     with torch.no_grad():
         out = smplx(params)
         target, conf = torch.zeros(2, N_KEYPOINTS, 2), torch.ones(2, N_KEYPOINTS)
-        terms = fitter._terms(fitter.config.stages[0], out, params, target, conf, [None], None)
+        terms = fitter._terms(fitter.config.stages[0], params, target, conf, [None], None)(out)
     assert torch.allclose(terms["pose_prior"], 404.0 ** 2 * smplx.pose_prior(params))
     assert torch.allclose(terms["shape"], 100.0 ** 2 * smplx.shape_prior(params))
 
