@@ -173,6 +173,9 @@ class Fitter:
                 if self.contact_normals is not None:
                     self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
         self.events: list[str] = []  # of the current fit (see FitResult.events)
+        # The frames last initialised: their keypoints, starts, labellings and events.
+        self._started: tuple[list[np.ndarray], Params, list[tuple[str, ...]], list[str]] = (
+            [], {}, [], [])
         self.evaluations = 0  # body rows evaluated in the current fit
 
     def _scene_vertices(self, rest: torch.Tensor) -> tuple[
@@ -792,17 +795,28 @@ class Fitter:
         with respect to the scene's world up (without a scene, the camera's -y), from the
         detector's confidences (neck and hips included, unlike the data term); and per
         frame the parts whose left and right the detector most likely exchanged (with
-        ``config.swap_sides``)."""
+        ``config.swap_sides``). The same frames as last time get the same answer without
+        the search: sequence mode's anchor search, then its fit, and a fit from the other
+        start ask for a frame's starts twice running."""
+        seen, params, labels, events = self._started
+        keypoints = [f.keypoints.data for f in frames]
+        if len(seen) == len(keypoints) and all(map(np.array_equal, seen, keypoints)):
+            self.events += events
+            return {k: v.clone() for k, v in params.items()}, list(labels)
         cfg = self.config
         target, conf = self._targets(frames)
         labellings = LABELLINGS if cfg.swap_sides else LABELLINGS[:1]
+        before = len(self.events)
         params, chosen = best_start(self.body, self.camera, target, conf, self.up,
                                     cfg.data_rho, cfg.init_depth_weight,
                                     [side_swap(label) for label in labellings],
                                     events=self.events, keep=cfg.start_candidates,
                                     facing_cost=cfg.facing_cost,
                                     guessed_legs=self._guessed_legs(conf))
-        return params, [labellings[int(c)] for c in chosen]
+        labels = [labellings[int(c)] for c in chosen]
+        self._started = ([k.copy() for k in keypoints], {k: v.clone() for k, v in params.items()},
+                         labels, self.events[before:])
+        return params, list(labels)
 
     def _guessed_legs(self, conf: torch.Tensor) -> torch.Tensor | None:
         """(B,) bool: the frames whose keypoints (the detector's confidences ``conf``

@@ -1291,3 +1291,25 @@ def test_faint_legs_are_the_knees_and_ankles_reported_faintly_in_the_image(body)
     joints[ANKLES[1], 1] = 3.0  # 45 degrees down: below the image
     faint = fitter._faint_legs(detected, joints)
     assert faint.nonzero().flatten().tolist() == [KNEES[0], ANKLES[0]]
+
+
+def test_the_same_frames_are_started_once(body):
+    """Asked twice running for the same frames' starts (sequence mode's anchor search,
+    then the anchor's fit), the fitter searches once and answers alike; other keypoints
+    are searched anew, and a caller's changes to the starts it got do not reach the next
+    answer."""
+    _, keypoints = standing_person(body, tilted_camera())
+    fitter = Fitter(body, CAMERA, load_config("rgb"))
+    frame = frame_of(keypoints)
+    with fitter._counting():
+        first, labels = fitter.initialise([frame])
+        searched = fitter.evaluations
+        kept = {k: v.clone() for k, v in first.items()}
+        first["transl"] += 1.0  # a fit moves its starts in place
+        again, labels_again = fitter.initialise([frame_of(keypoints)])
+        assert fitter.evaluations == searched > 0
+        other = fitter.initialise([frame_of(keypoints + torch.tensor([0.2, 0.0, 0.0]))])[0]
+        assert fitter.evaluations > searched
+    assert labels_again == labels
+    assert all(torch.equal(again[k], kept[k]) for k in kept)
+    assert not torch.equal(other["transl"], again["transl"])
