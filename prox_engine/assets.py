@@ -2,8 +2,8 @@
 
 anny's first build takes about a minute, peaks at 1.4 GB and writes ~0.8 GB of cache, so
 ``prox setup`` (run by ``make setup``) builds it once, bakes the float32 model data to a
-safetensors file, and warms warp's kernel cache (skinning, nearest faces); run time only
-loads that file.
+safetensors file, and warms warp's kernel cache (skinning, bone chain, nearest faces); run
+time only loads that file.
 """
 from __future__ import annotations
 
@@ -80,8 +80,9 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     from .body.anny_body import AnnyBody
     from .nearest_face import nearest_faces
 
-    say("compiling the skinning and nearest-face kernels (cached after the first time) ...")
-    body = AnnyBody.load()  # compiles and caches the skinning kernel
+    say("compiling the skinning, bone-chain and nearest-face kernels (cached after the first "
+        "time) ...")
+    body = AnnyBody.load()  # compiles and caches the skinning and bone-chain kernels
     body(body.init_params(1))
     triangle = torch.eye(3, dtype=torch.float64)[None]  # compiles the nearest-face kernel
     nearest_faces(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.int64),

@@ -144,11 +144,11 @@ class BoneChain:
 
     def __init__(self, slot: torch.Tensor, turn: torch.Tensor, parent: torch.Tensor) -> None:
         _started()
-        self._tensors = (slot.to(torch.int32).contiguous(), turn.float().contiguous(),
-                         parent.to(torch.int32).contiguous())
-        slot, turn, parent = self._tensors
-        self.arrays = (wp.from_torch(slot, dtype=wp.int32), wp.from_torch(turn, dtype=wp.mat33),
-                       wp.from_torch(parent, dtype=wp.int32))
+        self._tensors = (slot.detach().to(torch.int32).contiguous(),
+                         turn.detach().float().contiguous(),
+                         parent.detach().to(torch.int32).contiguous())
+        self.arrays = tuple(wp.from_torch(t, dtype=dtype, requires_grad=False) for t, dtype
+                            in zip(self._tensors, (wp.int32, wp.mat33, wp.int32)))
 
     def __call__(self, rotvecs: torch.Tensor, transl: torch.Tensor, offsets: torch.Tensor
                  ) -> torch.Tensor:
@@ -165,7 +165,7 @@ class _Posed(torch.autograd.Function):
         inputs = [t.detach().float().contiguous() for t in (rotvecs, transl, offsets)]
         poses = torch.empty(len(rotvecs), len(chain._tensors[0]), 4, 4)
         wp.launch(_pose, dim=len(rotvecs), device="cpu",
-                  inputs=[*_arrays(inputs), *chain.arrays, wp.from_torch(poses, dtype=wp.mat44)])
+                  inputs=[*_arrays(inputs), *chain.arrays, _matrices(poses)])
         ctx.save_for_backward(*inputs, poses)
         ctx.chain = chain
         return poses
@@ -178,9 +178,8 @@ class _Posed(torch.autograd.Function):
         rotvec_grad, transl_grad = torch.zeros_like(rotvecs), torch.zeros_like(transl)
         offset_grad = torch.zeros(len(rotvecs), *offsets.shape[1:])
         wp.launch(_pose_grad, dim=len(rotvecs), device="cpu", inputs=[
-            *_arrays(inputs), *ctx.chain.arrays, wp.from_torch(poses, dtype=wp.mat44),
-            wp.from_torch(grads, dtype=wp.mat44), *_arrays([rotvec_grad, transl_grad,
-                                                            offset_grad])])
+            *_arrays(inputs), *ctx.chain.arrays, _matrices(poses), _matrices(grads),
+            *_arrays([rotvec_grad, transl_grad, offset_grad])])
         if len(offsets) != len(rotvecs):  # one set of offsets for every body
             offset_grad = offset_grad.sum(0, keepdim=True)
         return rotvec_grad, transl_grad, offset_grad, None
@@ -189,6 +188,11 @@ class _Posed(torch.autograd.Function):
 def _arrays(tensors: list[torch.Tensor]) -> list[wp.array]:
     """Axis-angles (B, P, 3), translations (B, 3), offsets (B, J, 3) as warp vec3 arrays."""
     return [wp.from_torch(t, dtype=wp.vec3, requires_grad=False) for t in tensors]
+
+
+def _matrices(poses: torch.Tensor) -> wp.array:
+    """Poses (B, J, 4, 4) as a warp array of 4x4 matrices."""
+    return wp.from_torch(poses, dtype=wp.mat44, requires_grad=False)
 
 
 @functools.cache
