@@ -1,8 +1,9 @@
 """Forward kinematics of anny's skeleton for the fitted rotations: the bone chain in one
 warp kernel (:mod:`.bone_chain`), the skinning transforms by batched 3x3 products. anny's own
 (``get_bone_transforms``, 'local-bone') builds every bone's 4x4 delta matrix and multiplies
-by broadcast sums, and a torch chain composed level by level still took about two hundred
-small operations a forward and backward pass, which on a CPU cost more than the arithmetic.
+by broadcast sums, and a torch chain composed level by level still made the skeleton's
+forward and backward pass 803 small operations (181 now), which on a CPU cost more than the
+arithmetic.
 
 In anny's notation (``anny.utils.kinematics.forward_kinematic``): bone c of parent p has
 rest pose P_c = [R_c | h_c], fixed reference orientation U_c and fitted rotation D_c.
