@@ -144,7 +144,8 @@ class BoneChain:
 
     def __init__(self, slot: torch.Tensor, turn: torch.Tensor, parent: torch.Tensor) -> None:
         _started()
-        self._tensors = (slot.detach().to(torch.int32).contiguous(),
+        self.bones = len(slot)
+        self._tensors = (slot.detach().to(torch.int32).contiguous(),  # the arrays' memory
                          turn.detach().float().contiguous(),
                          parent.detach().to(torch.int32).contiguous())
         self.arrays = tuple(wp.from_torch(t, dtype=dtype, requires_grad=False) for t, dtype
@@ -163,7 +164,7 @@ class _Posed(torch.autograd.Function):
     def forward(ctx, rotvecs: torch.Tensor, transl: torch.Tensor, offsets: torch.Tensor,
                 chain: BoneChain) -> torch.Tensor:
         inputs = [t.detach().float().contiguous() for t in (rotvecs, transl, offsets)]
-        poses = torch.empty(len(rotvecs), len(chain._tensors[0]), 4, 4)
+        poses = torch.empty(len(rotvecs), chain.bones, 4, 4)
         wp.launch(_pose, dim=len(rotvecs), device="cpu",
                   inputs=[*_arrays(inputs), *chain.arrays, _matrices(poses)])
         ctx.save_for_backward(*inputs, poses)
