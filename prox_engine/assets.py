@@ -8,6 +8,7 @@ time only loads that file.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import shutil
 import sys
@@ -29,9 +30,10 @@ def sdf_cache_dir() -> Path:
     return home() / "sdf"
 
 
+@functools.cache
 def configure_warp() -> None:
-    """Point warp at our kernel cache and start it quietly; must run before anny (and so
-    warp) is imported. Without this every command and worker log would begin with warp's
+    """Point warp at our kernel cache and start it quietly, once per process; must run
+    before anny (and so warp) is imported. Without this every command and worker log would begin with warp's
     device banner and, on machines without a GPU, a CUDA warning its C code prints."""
     os.environ.setdefault("WARP_CACHE_PATH", str(home() / "warp"))
     import warp

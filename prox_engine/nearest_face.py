@@ -7,8 +7,6 @@ passes over their (N, k, 3) candidates, and this takes 2.3. warp is anny's own k
 compiler; ``prox setup`` warms its cache."""
 from __future__ import annotations
 
-import functools
-
 import torch
 import warp as wp
 
@@ -99,7 +97,7 @@ def nearest_faces(points: torch.Tensor, candidates: torch.Tensor, triangles: tor
     candidate's plane (of the candidates tied within TIE, the farthest plane) or, with face
     ``areas`` (F,), by every candidate's vote weighted by its area and by how squarely it
     faces the point; a point exactly on the plane is outside (+1)."""
-    _started()
+    configure_warp()
     n = len(points)
     closest = torch.empty((n, 3), dtype=torch.float64)
     sign = torch.empty(n, dtype=torch.float64)
@@ -116,9 +114,3 @@ def nearest_faces(points: torch.Tensor, candidates: torch.Tensor, triangles: tor
         int(vote), wp.from_torch(closest, dtype=wp.vec3d),
         wp.from_torch(sign, dtype=wp.float64)])
     return closest, sign
-
-
-@functools.cache
-def _started() -> None:
-    """warp started the project's way (its kernel cache, no banner), once."""
-    configure_warp()

@@ -13,8 +13,6 @@ eight, which on a CPU cost more in dispatch than in arithmetic; with these two k
 takes 181. warp is anny's own kernel compiler; ``prox setup`` warms its cache."""
 from __future__ import annotations
 
-import functools
-
 import torch
 import warp as wp
 
@@ -143,7 +141,7 @@ class BoneChain:
     ``turn`` (J, 3, 3) and its ``parent`` (J,; J for the root)."""
 
     def __init__(self, slot: torch.Tensor, turn: torch.Tensor, parent: torch.Tensor) -> None:
-        _started()
+        configure_warp()
         self.bones = len(slot)
         self._tensors = (slot.detach().to(torch.int32).contiguous(),  # the arrays' memory
                          turn.detach().float().contiguous(),
@@ -194,9 +192,3 @@ def _arrays(tensors: list[torch.Tensor]) -> list[wp.array]:
 def _matrices(poses: torch.Tensor) -> wp.array:
     """Poses (B, J, 4, 4) as a warp array of 4x4 matrices."""
     return wp.from_torch(poses, dtype=wp.mat44, requires_grad=False)
-
-
-@functools.cache
-def _started() -> None:
-    """warp started the project's way (its kernel cache, no banner), once."""
-    configure_warp()
