@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from .assets import configure_warp
+from .warp_launch import CpuKernel
 
 # Candidates whose distance is within this (m) of the nearest tie: the one whose plane the
 # point is farthest from decides the sign (right on convex and concave edges alike).
@@ -88,6 +88,10 @@ def _nearest(points: wp.array(dtype=wp.vec3d), candidates: wp.array2d(dtype=wp.i
     sign[i] = wp.where(decided < wp.float64(0.0), wp.float64(-1.0), wp.float64(1.0))
 
 
+_NEAREST = CpuKernel(_nearest, (wp.vec3d, wp.int64, wp.vec3d, wp.vec3d, wp.float64, None,
+                                wp.vec3d, wp.float64))
+
+
 def nearest_faces(points: torch.Tensor, candidates: torch.Tensor, triangles: torch.Tensor,
                   normals: torch.Tensor, areas: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -97,20 +101,12 @@ def nearest_faces(points: torch.Tensor, candidates: torch.Tensor, triangles: tor
     candidate's plane (of the candidates tied within TIE, the farthest plane) or, with face
     ``areas`` (F,), by every candidate's vote weighted by its area and by how squarely it
     faces the point; a point exactly on the plane is outside (+1)."""
-    configure_warp()
     n = len(points)
     closest = torch.empty((n, 3), dtype=torch.float64)
     sign = torch.empty(n, dtype=torch.float64)
-    if n == 0:
-        return closest, sign
     vote = areas is not None
     unread = sign[:0]  # the kernel reads no areas without a vote
-    wp.launch(_nearest, dim=n, device="cpu", inputs=[
-        wp.from_torch(points.double().contiguous(), dtype=wp.vec3d),
-        wp.from_torch(candidates.contiguous(), dtype=wp.int64),
-        wp.from_torch(triangles.contiguous(), dtype=wp.vec3d),
-        wp.from_torch(normals.contiguous(), dtype=wp.vec3d),
-        wp.from_torch(areas.contiguous() if vote else unread, dtype=wp.float64),
-        int(vote), wp.from_torch(closest, dtype=wp.vec3d),
-        wp.from_torch(sign, dtype=wp.float64)])
+    _NEAREST(n, points.double().contiguous(), candidates.contiguous(), triangles.contiguous(),
+             normals.contiguous(), areas.contiguous() if vote else unread, int(vote), closest,
+             sign)
     return closest, sign

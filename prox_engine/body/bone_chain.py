@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from ..assets import configure_warp
+from ..warp_launch import CpuKernel
 
 
 @wp.func
@@ -141,13 +141,10 @@ class BoneChain:
     ``turn`` (J, 3, 3) and its ``parent`` (J,; J for the root)."""
 
     def __init__(self, slot: torch.Tensor, turn: torch.Tensor, parent: torch.Tensor) -> None:
-        configure_warp()
         self.bones = len(slot)
-        self._tensors = (slot.detach().to(torch.int32).contiguous(),  # the arrays' memory
-                         turn.detach().float().contiguous(),
-                         parent.detach().to(torch.int32).contiguous())
-        self.arrays = tuple(wp.from_torch(t, dtype=dtype, requires_grad=False) for t, dtype
-                            in zip(self._tensors, (wp.int32, wp.mat33, wp.int32)))
+        self.structure = (slot.detach().to(torch.int32).contiguous(),
+                          turn.detach().float().contiguous(),
+                          parent.detach().to(torch.int32).contiguous())
 
     def __call__(self, rotvecs: torch.Tensor, transl: torch.Tensor, offsets: torch.Tensor
                  ) -> torch.Tensor:
@@ -157,14 +154,19 @@ class BoneChain:
         return _Posed.apply(rotvecs, transl, offsets, self)
 
 
+_STRUCTURE = (wp.int32, wp.mat33, wp.int32)
+_POSE = CpuKernel(_pose, (wp.vec3, wp.vec3, wp.vec3, *_STRUCTURE, wp.mat44))
+_POSE_GRAD = CpuKernel(_pose_grad, (wp.vec3, wp.vec3, wp.vec3, *_STRUCTURE, wp.mat44,
+                                    wp.mat44, wp.vec3, wp.vec3, wp.vec3))
+
+
 class _Posed(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rotvecs: torch.Tensor, transl: torch.Tensor, offsets: torch.Tensor,
                 chain: BoneChain) -> torch.Tensor:
         inputs = [t.detach().float().contiguous() for t in (rotvecs, transl, offsets)]
         poses = torch.empty(len(rotvecs), chain.bones, 4, 4)
-        wp.launch(_pose, dim=len(rotvecs), device="cpu",
-                  inputs=[*_arrays(inputs), *chain.arrays, _matrices(poses)])
+        _POSE(len(rotvecs), *inputs, *chain.structure, poses)
         ctx.save_for_backward(*inputs, poses)
         ctx.chain = chain
         return poses
@@ -176,19 +178,8 @@ class _Posed(torch.autograd.Function):
         grads = grad.float().contiguous().clone()  # the kernel adds subtrees into it
         rotvec_grad, transl_grad = torch.zeros_like(rotvecs), torch.zeros_like(transl)
         offset_grad = torch.zeros(len(rotvecs), *offsets.shape[1:])
-        wp.launch(_pose_grad, dim=len(rotvecs), device="cpu", inputs=[
-            *_arrays(inputs), *ctx.chain.arrays, _matrices(poses), _matrices(grads),
-            *_arrays([rotvec_grad, transl_grad, offset_grad])])
+        _POSE_GRAD(len(rotvecs), *inputs, *ctx.chain.structure, poses, grads, rotvec_grad,
+                   transl_grad, offset_grad)
         if len(offsets) != len(rotvecs):  # one set of offsets for every body
             offset_grad = offset_grad.sum(0, keepdim=True)
         return rotvec_grad, transl_grad, offset_grad, None
-
-
-def _arrays(tensors: list[torch.Tensor]) -> list[wp.array]:
-    """Axis-angles (B, P, 3), translations (B, 3), offsets (B, J, 3) as warp vec3 arrays."""
-    return [wp.from_torch(t, dtype=wp.vec3, requires_grad=False) for t in tensors]
-
-
-def _matrices(poses: torch.Tensor) -> wp.array:
-    """Poses (B, J, 4, 4) as a warp array of 4x4 matrices."""
-    return wp.from_torch(poses, dtype=wp.mat44, requires_grad=False)
