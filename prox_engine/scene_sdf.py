@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from .nearest_face import nearest_faces
 from .output import atomic_write_bytes, atomic_write_text
+from .trilinear import Trilinear
 
 
 @dataclass
@@ -36,13 +36,7 @@ class SignedDistanceField:
     bmax: torch.Tensor  # (3,)
 
     def __post_init__(self) -> None:
-        # grid_sample wants (N, C, D, H, W) with the last grid coordinate indexing W: put z
-        # in D. Swapping x and z one y-slice at a time (2-D transposes that stay in cache)
-        # takes a third of the time of one 3-D permuted copy (0.05 s against 0.16 at 256^3).
-        volume = self.grid.new_empty(self.grid.shape[::-1])
-        for y in range(self.grid.shape[1]):
-            volume[:, y] = self.grid[:, y].T
-        self._volume = volume[None, None]
+        self._read = Trilinear(self.grid, self.bmin, self.bmax)
 
     @property
     def dim(self) -> int:
@@ -53,12 +47,9 @@ class SignedDistanceField:
         return float(((self.bmax - self.bmin) / (self.dim - 1)).max())
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
-        """Signed distances at world points (..., 3); outside the box, the border value."""
-        shape = points.shape[:-1]
-        norm = (points.reshape(1, -1, 1, 1, 3) - self.bmin) / (self.bmax - self.bmin) * 2 - 1
-        out = F.grid_sample(self._volume.to(points.dtype), norm, mode="bilinear",
-                            padding_mode="border", align_corners=True)
-        return out.reshape(shape)
+        """Signed distances at world points (..., 3), trilinear between the grid's samples;
+        outside the box, the border value."""
+        return self._read(points)
 
     @torch.no_grad()
     def normals(self, points: torch.Tensor) -> torch.Tensor:
