@@ -15,7 +15,9 @@ import math
 from itertools import accumulate
 from typing import Callable, Generator
 
+import numpy as np
 import torch
+from scipy.linalg import solve_triangular
 from torch.optim.lbfgs import _cubic_interpolate
 
 # Evaluates the model at the variables' current values and returns each group's loss.
@@ -176,7 +178,7 @@ def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_
         else:
             y = flat_grad.sub(prev_flat_grad)
             s = d.mul(t)
-            ys = y.dot(s)
+            ys = float(y.dot(s))
             if ys > 1e-10:
                 if len(old_dirs) == history:
                     old_dirs.pop(0)
@@ -185,16 +187,8 @@ def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_
                 old_dirs.append(y)
                 old_stps.append(s)
                 ro.append(1.0 / ys)
-                state["H_diag"] = ys / y.dot(y)
-            al = [None] * len(old_dirs)
-            q = flat_grad.neg()
-            for i in range(len(old_dirs) - 1, -1, -1):
-                al[i] = old_stps[i].dot(q) * ro[i]
-                q.add_(old_dirs[i], alpha=-al[i])
-            d = r = torch.mul(q, state["H_diag"])
-            for i in range(len(old_dirs)):
-                be_i = old_dirs[i].dot(r) * ro[i]
-                r.add_(old_stps[i], alpha=al[i] - be_i)
+                state["H_diag"] = ys / float(y.dot(y))
+            d = _direction(flat_grad, old_stps, old_dirs, ro, state["H_diag"])
         if prev_flat_grad is None:
             prev_flat_grad = flat_grad.clone(memory_format=torch.contiguous_format)
         else:
@@ -215,6 +209,36 @@ def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_
             break
     state.update(d=d, t=t, prev_flat_grad=prev_flat_grad, prev_loss=prev_loss)
     return x, orig_loss
+
+
+def _direction(grad: torch.Tensor, steps: list[torch.Tensor], changes: list[torch.Tensor],
+               rho: list[float], scale: float) -> torch.Tensor:
+    """-H grad for the L-BFGS inverse Hessian H of the pairs s_i = ``steps``, y_i =
+    ``changes``, rho_i = 1 / (y_i . s_i), H_0 = ``scale`` I: torch's two-loop recursion,
+    whose 4m dot products and updates on the variables cost 150 us an iteration for m =
+    20, as two triangular systems of m unknowns in the pairs' Gram matrix (float64), and
+    one combination of the pairs.
+
+    The first loop's a_i = rho_i s_i . q_i, q_i = -grad - sum_{j>i} a_j y_j, solves
+    a_i + rho_i sum_{j>i} (s_i . y_j) a_j = -rho_i s_i . grad; the second's c_i = a_i -
+    rho_i y_i . r_i, r_i = scale q_0 + sum_{j<i} c_j s_j, solves c_i + rho_i sum_{j<i}
+    (y_i . s_j) c_j = a_i - rho_i scale y_i . q_0. The direction is r_m."""
+    m = len(steps)
+    if m == 0:
+        return grad.neg().mul_(scale)
+    pairs = torch.stack(steps + changes).double().numpy()  # (2m, n): s_i, then y_i
+    gram = pairs @ pairs.T
+    along = pairs @ grad.detach().double().numpy()
+    r = np.asarray(rho)
+    first = np.triu(gram[:m, m:], 1) * r[:, None]
+    first[np.diag_indices(m)] = 1.0
+    a = solve_triangular(first, -r * along[:m], lower=False, check_finite=False)
+    y_q = -along[m:] - gram[m:, m:] @ a
+    second = np.tril(gram[m:, :m], -1) * r[:, None]
+    second[np.diag_indices(m)] = 1.0
+    c = solve_triangular(second, a - r * scale * y_q, lower=True, check_finite=False)
+    direction = pairs.T @ np.concatenate([c, -scale * a]) - scale * grad.double().numpy()
+    return torch.from_numpy(direction).to(grad.dtype)
 
 
 def _strong_wolfe(x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, max_ls=25):
