@@ -117,14 +117,14 @@ def test_upright_term_measures_the_trunk_against_world_up(body):
     """Seen by a tilted, rolled, off-centre camera: a standing trunk costs nothing, one
     tipped by 20 degrees the robust square of 20 degrees, and a lying one little more
     than that (the term saturates), whichever way the camera is turned."""
-    from prox_engine.losses import gmof, upright
+    from prox_engine.losses import gmof, trunk_angle, upright
 
     cam2world = tilted_camera()
     up = floor_scene(cam2world).up_in_camera()
     rho = load_config("prox").upright_rho
-    standing = float(upright(_leaning(body, cam2world, 0.0), up, rho))
-    tipped = float(upright(_leaning(body, cam2world, 20.0), up, rho))
-    lying = float(upright(_leaning(body, cam2world, 90.0), up, rho))
+    standing = float(upright(trunk_angle(_leaning(body, cam2world, 0.0), up), rho))
+    tipped = float(upright(trunk_angle(_leaning(body, cam2world, 20.0), up), rho))
+    lying = float(upright(trunk_angle(_leaning(body, cam2world, 90.0), up), rho))
     trunk_tilt = math.radians(20.0)  # the mean body's trunk is within a degree of vertical
     assert standing < 0.02 * tipped
     assert abs(tipped - float(gmof(torch.tensor(trunk_tilt ** 2), rho))) < 0.15 * tipped
@@ -135,13 +135,14 @@ def test_level_term_rewards_only_a_trunk_near_level(body):
     """Seen by a tilted, rolled, off-centre camera: a lying trunk gets the whole reward,
     one pitched 10 degrees out of level less of it, and a reclining (45 degrees) or
     standing trunk nothing and no gradient, so their fits cannot change."""
-    from prox_engine.losses import level
+    from prox_engine.losses import level, trunk_angle
 
     cam2world = tilted_camera()
     up = floor_scene(cam2world).up_in_camera()
     rho = load_config("prox").level_rho
     lying, pitched, reclined, standing = (
-        float(level(_leaning(body, cam2world, tip), up, rho)) for tip in (90.0, 80.0, 45.0, 0.0))
+        float(level(trunk_angle(_leaning(body, cam2world, tip), up), rho))
+        for tip in (90.0, 80.0, 45.0, 0.0))
 
     def reward(degrees: float) -> float:
         return -rho ** 2 * (1 - (math.radians(degrees) / rho) ** 2) ** 2
@@ -152,7 +153,7 @@ def test_level_term_rewards_only_a_trunk_near_level(body):
     assert reclined == 0.0 and standing == 0.0
     out = _leaning(body, cam2world, 45.0)
     out.keypoints.requires_grad_(True)
-    level(out, up, rho).sum().backward()
+    level(trunk_angle(out, up), rho).sum().backward()
     assert float(out.keypoints.grad.abs().max()) == 0.0
 
 
