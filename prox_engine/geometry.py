@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import torch
+import warp as wp
+
+from .warp_launch import CpuKernel
 
 
 def face_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -29,30 +32,52 @@ def _sum_into(values: torch.Tensor, slots: torch.Tensor, count: int) -> torch.Te
         0, flat, values.reshape(-1, 3)).view(batch, count, 3)
 
 
+@wp.kernel
+def _vertex_normals(vertices: wp.array2d(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
+                    first: wp.array(dtype=wp.int32), around: wp.array(dtype=wp.int32),
+                    slot: wp.array(dtype=wp.int32), normals: wp.array2d(dtype=wp.vec3)):
+    b, i = wp.tid()
+    v = slot[i]
+    n = wp.vec3(0.0, 0.0, 0.0)
+    for j in range(first[v], first[v + 1]):
+        f = faces[around[j]]
+        a = vertices[b, f[0]]
+        n += wp.cross(vertices[b, f[1]] - a, vertices[b, f[2]] - a)
+    normals[b, i] = n / wp.max(wp.length(n), 1e-12)
+
+
+_VERTEX_NORMALS = CpuKernel(_vertex_normals, (wp.vec3, wp.vec3i, wp.int32, wp.int32, wp.int32,
+                                              wp.vec3))
+
+
 class VertexNormals:
     """Area-weighted unit normals of a fixed set of mesh vertices (the contact vertices),
-    from the faces around them only: a quarter of the work of :func:`vertex_normals` for a
-    body's contact set, with the incidence worked out once."""
+    without gradient, from the faces around them only, in one warp kernel: 0.5 ms in torch
+    for a body's contact set, a contact evaluation's largest part."""
 
     def __init__(self, faces: torch.Tensor, ids: torch.Tensor) -> None:
         self.ids = ids
-        unique, self._order = torch.unique(ids, return_inverse=True)
+        unique, order = torch.unique(ids, return_inverse=True)
         slot = torch.full((int(faces.max()) + 1,), -1, dtype=torch.long)
         slot[unique] = torch.arange(len(unique))
-        around = (slot[faces] >= 0).any(1)
-        self._faces = faces[around]
-        corners = slot[self._faces]  # (F', 3): slot of each corner, -1 if not in ids
-        self._corner_face, corner = torch.nonzero(corners >= 0, as_tuple=True)
-        self._corner_slot = corners[self._corner_face, corner]
-        self._count = len(unique)
+        corners = slot[faces]  # (F, 3): slot of each corner, -1 if not in ids
+        face, corner = torch.nonzero(corners >= 0, as_tuple=True)
+        owner = corners[face, corner]
+        by_owner = torch.argsort(owner, stable=True)
+        self._faces = faces.to(torch.int32).contiguous()
+        self._first = torch.cat([torch.zeros(1, dtype=torch.long),
+                                 torch.bincount(owner, minlength=len(unique)).cumsum(0)]
+                                ).to(torch.int32)
+        self._around = face[by_owner].to(torch.int32)  # each slot's faces, slot by slot
+        self._slot = order.to(torch.int32)
 
     def __call__(self, vertices: torch.Tensor) -> torch.Tensor:
         """(B, len(ids), 3) normals of (B, V, 3) vertices."""
-        tri = vertices[:, self._faces]
-        n = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
-        out = _sum_into(n[:, self._corner_face], self._corner_slot, self._count)[:, self._order]
-        return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
+        normals = torch.empty(len(vertices), len(self._slot), 3)
+        _VERTEX_NORMALS((len(vertices), len(self._slot)),
+                        vertices.detach().float().contiguous(), self._faces, self._first,
+                        self._around, self._slot, normals)
+        return normals
 
 def grid_subsample(points: torch.Tensor, spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Ascending indices of one of ``points`` (N, 3), the first, in each occupied cell of

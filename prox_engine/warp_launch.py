@@ -7,6 +7,7 @@ A :class:`CpuKernel` records the launch once per thread and then only re-points 
 tensors' descriptors (``from_torch(..., return_ctype=True)``): 16 us for the same call."""
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Sequence
 from typing import Any
@@ -25,8 +26,8 @@ class CpuKernel:
         self.kernel, self.dtypes = kernel, list(dtypes)
         self._recorded = threading.local()  # a recorded launch is one mutable argument list
 
-    def __call__(self, dim: int, *args: Any) -> None:
-        if dim == 0:
+    def __call__(self, dim: int | tuple[int, ...], *args: Any) -> None:
+        if math.prod(dim if isinstance(dim, tuple) else (dim,)) == 0:
             return
         command = getattr(self._recorded, "command", None)
         if command is None:
