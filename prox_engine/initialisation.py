@@ -160,9 +160,10 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         transl.requires_grad_(True)
 
         def objective() -> Callable[[slice], torch.Tensor]:
-            points = rotated() + transl[:, None]
+            rotation = axis_angle_to_matrix(turn) @ rot0
+            points = kp @ rotation.transpose(1, 2) + transl[:, None]
             held = (torch.einsum("nk,nk->n", w_c, points[..., 2]) - depth) ** 2
-            tilt = (axis_angle_to_matrix(turn) @ rot0 @ model_up) @ up - tilt0
+            tilt = (rotation @ model_up) @ up - tilt0
             loss = data(points, flat_w) + depth_weight * held + TILT_WEIGHT * tilt ** 2
             return lambda rows: loss[rows].sum()
 
