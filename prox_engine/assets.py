@@ -33,8 +33,9 @@ def sdf_cache_dir() -> Path:
 @functools.cache
 def configure_warp() -> None:
     """Point warp at our kernel cache and start it quietly, once per process; must run
-    before anny (and so warp) is imported. Without this every command and worker log would begin with warp's
-    device banner and, on machines without a GPU, a CUDA warning its C code prints."""
+    before anny (and so warp) is imported. Without this every command and worker log would
+    begin with warp's device banner and, on machines without a GPU, a CUDA warning its C
+    code prints."""
     os.environ.setdefault("WARP_CACHE_PATH", str(home() / "warp"))
     import warp
 

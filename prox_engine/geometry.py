@@ -142,7 +142,8 @@ class _Rodrigues(torch.autograd.Function):
         ds = torch.where(series, -1 / 3 + t2 / 30 - t2 ** 2 / 840, (t * cos - sin) / t ** 3)
         dc = torch.where(series, -1 / 12 + t2 / 180 - t2 ** 2 / 6720,
                          (t * sin - 2 * (1 - cos)) / t ** 4)
-        along = ds * (grad * k).sum((-1, -2))[..., None] + dc * (grad * kk).sum((-1, -2))[..., None]
+        along = (ds * (grad * k).sum((-1, -2))[..., None]
+                 + dc * (grad * kk).sum((-1, -2))[..., None])
         kt = k.transpose(-1, -2)
         return aa * along + s * _vee(grad) + c * _vee(grad @ kt + kt @ grad)
 

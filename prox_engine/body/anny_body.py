@@ -41,7 +41,7 @@ FINGER_BONES = [f"{b}.{s}" for s in SIDES for b in
                  "finger5-1", "finger5-2", "finger5-3"]]
 PHENOTYPES = ["gender", "age", "muscle", "weight", "height", "proportions"]
 # The rest quantities AnnyBody.shape_expanded expands (with the rest vertices).
-_EXPANDED = ("bone_poses", "offsets", "anchors")
+_EXPANDED = ("bone_poses", "offsets", "local_anchors")
 
 # Anatomical limits (radians) of each bone's axis-angle components (x, y, z) in its own
 # frame; signs measured on anny: hip flexion is -x, knee, elbow and trunk flexion +x,
@@ -168,6 +168,11 @@ class AnnyBody(BodyModel):
         self._setup_phenotype_coefficients()
         self._setup_static_geometry()
         self._setup_rest_basis(*self._setup_keypoint_anchors())
+        # where the forward pass reads the bones it places keypoints and spheres on in the
+        # bone chain's depth order
+        for name, bones in (("anchor_slot", self.anchor_bone), ("hand_head_slot", self.hand_heads),
+                            ("sphere_slot", self.sphere_bone)):
+            self.register_buffer(name, self.skeleton.inverse[bones])
 
     @classmethod
     def load(cls, age_years: float = ADULT_AGE_YEARS) -> "AnnyBody":
@@ -561,13 +566,22 @@ class AnnyBody(BodyModel):
             poses = roma.Rigid(orientation, heads).to_homogeneous()
             cached = {"shape": shape.detach().clone(), "coeffs": coeffs, "bone_poses": poses,
                       "offsets": self.skeleton.offsets(poses),
-                      "anchors": anchors.view(len(coeffs), -1, 3)}
+                      "local_anchors": self._local_anchors(anchors.view(len(coeffs), -1, 3),
+                                                           poses)}
             if frozen and not fresh:
                 self._rest_cache = cached
         if vertices and vertices not in cached:
             cached[vertices] = vertices.data["template"] + torch.einsum(
                 "bc,cvd->bvd", cached["coeffs"], vertices.data["blendshapes"])
         return cached
+
+    def _local_anchors(self, anchors: torch.Tensor, rest_poses: torch.Tensor) -> torch.Tensor:
+        """(B, pairs, 3) the keypoint anchors (a, h) in their bones' rest frames, P^-1 [a;
+        h] = [R^T (a - h t); h] for a bone at rest at [R | t]: a posed bone W moves its
+        anchor to W [R^T (a - h t); h] without the skinning transform W P^-1."""
+        held = rest_poses[:, self.anchor_bone]
+        offset = anchors - self.anchor_weight[:, None] * held[..., :3, 3]
+        return (held[..., :3, :3].transpose(-1, -2) @ offset[..., None])[..., 0]
 
     def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
         """The vertices ``ids`` with their rest template, blendshapes and skinning weights
@@ -584,23 +598,23 @@ class AnnyBody(BodyModel):
         rotvecs = torch.cat([params["global_orient"][:, None], params["body_pose"],
                              params["hand_pose"]], 1)
         batch = len(rotvecs)
-        transforms, bone_poses = self.skeleton(rotvecs, params["transl"], rest["bone_poses"],
-                                               rest["offsets"])
+        poses = self.skeleton.pose(rotvecs, params["transl"], rest["offsets"])  # depth order
         skinned = None
         if subset is not None:
             from anny.skinning import warp_skinning  # imported by load(), after warp's set-up
 
+            transforms, _ = self.skeleton.transforms(poses, rest["bone_poses"])
             skinned = warp_skinning.linear_blend_skinning(
                 rest[subset].expand(batch, -1, -1), subset.data["weights"],
                 subset.data["indices"], transforms)
-        anchor = transforms[:, self.anchor_bone, :3]  # (B, pairs, 3, 4)
-        moved = ((anchor[..., :3] @ rest["anchors"].expand(batch, -1, -1)[..., None])[..., 0]
-                 + anchor[..., 3] * self.anchor_weight[:, None])
+        held = poses[:, self.anchor_slot, :3]  # (B, pairs, 3, 4)
+        moved = ((held[..., :3] @ rest["local_anchors"].expand(batch, -1, -1)[..., None])[..., 0]
+                 + held[..., 3] * self.anchor_weight[:, None])
         points = moved.new_zeros(batch, len(self.keypoint_weights) + len(self.fingertips),
                                  3).index_add(1, self.anchor_point, moved)
-        keypoints = torch.cat([points, bone_poses[:, self.hand_heads, :3, 3],
+        keypoints = torch.cat([points, poses[:, self.hand_head_slot, :3, 3],
                                points.new_zeros(batch, 1, 3)], 1)[:, self.keypoint_source]
-        centres = torch.einsum("bsij,sj->bsi", bone_poses[:, self.sphere_bone, :3, :],
+        centres = torch.einsum("bsij,sj->bsi", poses[:, self.sphere_slot, :3, :],
                                self.sphere_local)
         spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)
         return BodyOutput(vertices=skinned, keypoints=keypoints, spheres=spheres)

@@ -50,14 +50,19 @@ class AnnySkeleton(torch.nn.Module):
                              rotation[:, self.parent].transpose(-1, -2) @ step)[..., 0]
         return offset[:, self.order]
 
-    def forward(self, rotvecs: torch.Tensor, transl: torch.Tensor, rest_poses: torch.Tensor,
-                offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Skinning transforms T and posed poses W (B, J, 4, 4) for axis-angles ``rotvecs``
-        (B, 1 + len(posed), 3), the root's first, the root at ``transl`` (B, 3), of the
-        body whose rest poses are ``rest_poses`` (B or 1, J, 4, 4), with their
-        :meth:`offsets`."""
-        batch = len(rotvecs)
-        poses = self.chain(rotvecs, transl, offsets)
+    def pose(self, rotvecs: torch.Tensor, transl: torch.Tensor, offsets: torch.Tensor
+             ) -> torch.Tensor:
+        """Posed poses W (B, J, 4, 4) in depth order (bone j's at ``inverse[j]``) for
+        axis-angles ``rotvecs`` (B, 1 + len(posed), 3), the root's first, the root at
+        ``transl`` (B, 3), of the body whose rest poses have these :meth:`offsets`."""
+        return self.chain(rotvecs, transl, offsets)
+
+    def transforms(self, poses: torch.Tensor, rest_poses: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Skinning transforms T and posed poses W (B, J, 4, 4), in bone order, of the
+        depth-ordered :meth:`pose` ``poses`` of the body whose rest poses are
+        ``rest_poses`` (B or 1, J, 4, 4)."""
+        batch = len(poses)
         poses = poses[:, self.inverse]
         rest_rotation, rest_head = rest_poses[..., :3, :3], rest_poses[..., :3, 3]
         rotation = poses[..., :3, :3] @ rest_rotation.transpose(-1, -2)
@@ -65,3 +70,8 @@ class AnnySkeleton(torch.nn.Module):
         bottom = self.bottom.expand(batch, poses.shape[1], 1, 4)
         transforms = torch.cat([torch.cat([rotation, shift[..., None]], -1), bottom], -2)
         return transforms, poses
+
+    def forward(self, rotvecs: torch.Tensor, transl: torch.Tensor, rest_poses: torch.Tensor,
+                offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`transforms` of the :meth:`pose` of ``rotvecs`` and ``transl``."""
+        return self.transforms(self.pose(rotvecs, transl, offsets), rest_poses)
