@@ -284,3 +284,30 @@ def test_bone_chain_shares_one_set_of_offsets_and_handles_tiny_angles(body):
         ours, = torch.autograd.grad((root * g).sum(), angle)
         theirs, = torch.autograd.grad((axis_angle_to_matrix(angle) * g).sum(), angle)
         torch.testing.assert_close(ours, theirs, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_skinning_is_annys(body, shared):
+    """Skinning that skips a vertex's empty bone slots poses and differentiates as anny's
+    kernel, for a batch of bodies with rest vertices of their own or one set for all."""
+    from anny.skinning import warp_skinning
+
+    from prox_engine.body.skinning import linear_blend_skinning
+
+    torch.manual_seed(6)
+    data = body._whole.data
+    count = 1 if shared else 3
+    rest = (data["template"] + 0.01 * torch.randn(count, *data["template"].shape))
+    rest.requires_grad_(True)
+    transforms = torch.eye(4).repeat(3, len(body.bone_labels), 1, 1)
+    transforms[:, :, :3] += 0.2 * torch.randn(3, len(body.bone_labels), 3, 4)
+    transforms.requires_grad_(True)
+    ours = linear_blend_skinning(rest, data["weights"], data["indices"], transforms)
+    theirs = warp_skinning.linear_blend_skinning(rest.expand(3, -1, -1), data["weights"],
+                                                 data["indices"], transforms)
+    torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-5)
+    weights = torch.randn_like(ours)
+    grads = [torch.autograd.grad((posed * weights).sum(), [rest, transforms])
+             for posed in (ours, theirs)]
+    for mine, reference in zip(*grads):
+        torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-4)

@@ -25,6 +25,7 @@ from .. import assets
 from ..geometry import vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 from .anny_kinematics import AnnySkeleton
+from .skinning import linear_blend_skinning
 from .base import BodyModel, BodyOutput, Params, VertexSubset
 
 SIDES = ("L", "R")
@@ -601,12 +602,9 @@ class AnnyBody(BodyModel):
         poses = self.skeleton.pose(rotvecs, params["transl"], rest["offsets"])  # depth order
         skinned = None
         if subset is not None:
-            from anny.skinning import warp_skinning  # imported by load(), after warp's set-up
-
             transforms, _ = self.skeleton.transforms(poses, rest["bone_poses"])
-            skinned = warp_skinning.linear_blend_skinning(
-                rest[subset].expand(batch, -1, -1), subset.data["weights"],
-                subset.data["indices"], transforms)
+            skinned = linear_blend_skinning(rest[subset], subset.data["weights"],
+                                            subset.data["indices"], transforms)
         held = poses[:, self.anchor_slot, :3]  # (B, pairs, 3, 4)
         moved = ((held[..., :3] @ rest["local_anchors"].expand(batch, -1, -1)[..., None])[..., 0]
                  + held[..., 3] * self.anchor_weight[:, None])
