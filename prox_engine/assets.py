@@ -81,13 +81,20 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     import torch
 
     from .body.anny_body import AnnyBody
+    from .geometry import VertexNormals
     from .nearest_face import nearest_faces
+    from .trilinear import Trilinear
 
-    say("compiling the skinning, bone-chain and nearest-face kernels (cached after the first "
-        "time) ...")
-    body = AnnyBody.load()  # compiles and caches the skinning and bone-chain kernels
-    body(body.init_params(1))
-    triangle = torch.eye(3, dtype=torch.float64)[None]  # compiles the nearest-face kernel
+    say("compiling the warp kernels: skinning, bone chain, nearest face, SDF reads, normals "
+        "(cached after the first time) ...")
+    body = AnnyBody.load()
+    params = {k: v.requires_grad_(True) for k, v in body.init_params(1).items()}
+    body(params).vertices.sum().backward()  # skinning and bone chain, both ways
+    triangle = torch.eye(3, dtype=torch.float64)[None]
     nearest_faces(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.int64),
                   triangle, triangle[:, 0])
+    Trilinear(torch.zeros(2, 2, 2), torch.zeros(3), torch.ones(3))(
+        torch.zeros(1, 3, requires_grad=True))
+    VertexNormals(body.faces, torch.zeros(1, dtype=torch.long))(
+        torch.zeros(1, body.num_vertices, 3))
     return target
