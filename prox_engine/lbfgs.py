@@ -135,7 +135,7 @@ def _calls(x: torch.Tensor, max_iter: int, max_calls: int, ftol: float | None,
     """A group's minimisation: up to ``max_calls`` calls of torch's step, each undone if
     it fails, the loss compared before and after each. Returns the final point and whether
     a call was undone."""
-    state: dict = {"n_iter": 0, "old_dirs": [], "old_stps": [], "ro": [], "H_diag": 1}
+    state: dict = {"n_iter": 0, "pairs": Pairs(history), "H_diag": 1}
     answer = yield x
     for call in range(max_calls):
         backup = x.clone()
@@ -167,7 +167,7 @@ def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_
     if flat_grad.abs().max() <= tolerance_grad:
         return x, orig_loss
     d, t = state.get("d"), state.get("t")
-    old_dirs, old_stps, ro = state["old_dirs"], state["old_stps"], state["ro"]
+    pairs = state["pairs"]
     prev_flat_grad, prev_loss = state.get("prev_flat_grad"), state.get("prev_loss")
     n_iter = 0
     while n_iter < max_iter:
@@ -180,15 +180,9 @@ def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_
             s = d.mul(t)
             ys = float(y.dot(s))
             if ys > 1e-10:
-                if len(old_dirs) == history:
-                    old_dirs.pop(0)
-                    old_stps.pop(0)
-                    ro.pop(0)
-                old_dirs.append(y)
-                old_stps.append(s)
-                ro.append(1.0 / ys)
+                pairs.add(s, y, 1.0 / ys)
                 state["H_diag"] = ys / float(y.dot(y))
-            d = _direction(flat_grad, old_stps, old_dirs, ro, state["H_diag"])
+            d = pairs.direction(flat_grad, state["H_diag"])
         if prev_flat_grad is None:
             prev_flat_grad = flat_grad.clone(memory_format=torch.contiguous_format)
         else:
@@ -211,34 +205,65 @@ def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_
     return x, orig_loss
 
 
-def _direction(grad: torch.Tensor, steps: list[torch.Tensor], changes: list[torch.Tensor],
-               rho: list[float], scale: float) -> torch.Tensor:
-    """-H grad for the L-BFGS inverse Hessian H of the pairs s_i = ``steps``, y_i =
-    ``changes``, rho_i = 1 / (y_i . s_i), H_0 = ``scale`` I: torch's two-loop recursion,
-    whose 4m dot products and updates on the variables cost 150 us an iteration for m =
-    20, as two triangular systems of m unknowns in the pairs' Gram matrix (float64), and
-    one combination of the pairs.
+class Pairs:
+    """L-BFGS's last ``size`` pairs of steps s_i and gradient changes y_i (float64), with
+    rho_i = 1 / (y_i . s_i) and the inner products s_i . y_j and y_i . y_j: a new pair's
+    against the others only, 3m products of the variables' length a step. The products
+    are torch's, which keeps to PROX_THREADS (numpy's BLAS would thread them); the m x m
+    work is numpy's."""
 
-    The first loop's a_i = rho_i s_i . q_i, q_i = -grad - sum_{j>i} a_j y_j, solves
-    a_i + rho_i sum_{j>i} (s_i . y_j) a_j = -rho_i s_i . grad; the second's c_i = a_i -
-    rho_i y_i . r_i, r_i = scale q_0 + sum_{j<i} c_j s_j, solves c_i + rho_i sum_{j<i}
-    (y_i . s_j) c_j = a_i - rho_i scale y_i . q_0. The direction is r_m."""
-    m = len(steps)
-    if m == 0:
-        return grad.neg().mul_(scale)
-    pairs = torch.stack(steps + changes).double().numpy()  # (2m, n): s_i, then y_i
-    gram = pairs @ pairs.T
-    along = pairs @ grad.detach().double().numpy()
-    r = np.asarray(rho)
-    first = np.triu(gram[:m, m:], 1) * r[:, None]
-    first[np.diag_indices(m)] = 1.0
-    a = solve_triangular(first, -r * along[:m], lower=False, check_finite=False)
-    y_q = -along[m:] - gram[m:, m:] @ a
-    second = np.tril(gram[m:, :m], -1) * r[:, None]
-    second[np.diag_indices(m)] = 1.0
-    c = solve_triangular(second, a - r * scale * y_q, lower=True, check_finite=False)
-    direction = pairs.T @ np.concatenate([c, -scale * a]) - scale * grad.double().numpy()
-    return torch.from_numpy(direction).to(grad.dtype)
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.s = self.y = torch.zeros(0, 0, dtype=torch.float64)
+        self.sy = self.yy = np.zeros((0, 0))
+        self.rho = np.zeros(0)
+
+    def add(self, s: torch.Tensor, y: torch.Tensor, rho: float) -> None:
+        s, y = s.detach().double(), y.detach().double()
+        keep = slice(1, None) if len(self.rho) == self.size else slice(None)
+        if len(self.rho):
+            self.s, self.y = torch.cat([self.s[keep], s[None]]), torch.cat([self.y[keep], y[None]])
+        else:
+            self.s, self.y = s[None], y[None]
+        self.rho = np.append(self.rho[keep], rho)
+        self.sy = _grown(self.sy[keep, keep], (self.s @ y).numpy(), (self.y @ s).numpy())
+        along = (self.y @ y).numpy()
+        self.yy = _grown(self.yy[keep, keep], along, along)
+
+    def direction(self, grad: torch.Tensor, scale: float) -> torch.Tensor:
+        """-H grad for the inverse Hessian H of the pairs with H_0 = ``scale`` I: torch's
+        two-loop recursion, whose 4m dot products and updates on the variables cost 150 us
+        a step for m = 20, as two triangular systems of m unknowns in the inner products,
+        and two combinations of the pairs.
+
+        The first loop's a_i = rho_i s_i . q_i, q_i = -grad - sum_{j>i} a_j y_j, solves
+        a_i + rho_i sum_{j>i} (s_i . y_j) a_j = -rho_i s_i . grad; the second's c_i = a_i
+        - rho_i y_i . r_i, r_i = scale q_0 + sum_{j<i} c_j s_j, solves c_i + rho_i
+        sum_{j<i} (y_i . s_j) c_j = a_i - rho_i scale y_i . q_0. The direction is r_m."""
+        g = grad.detach().double()
+        if not len(self.rho):
+            return (g * -scale).to(grad.dtype)
+        m, r = len(self.rho), self.rho
+        first = np.triu(self.sy, 1) * r[:, None]
+        first[np.diag_indices(m)] = 1.0
+        a = solve_triangular(first, -r * (self.s @ g).numpy(), lower=False,
+                             check_finite=False)
+        y_q = -(self.y @ g).numpy() - self.yy @ a
+        second = np.tril(self.sy.T, -1) * r[:, None]
+        second[np.diag_indices(m)] = 1.0
+        c = solve_triangular(second, a - r * scale * y_q, lower=True, check_finite=False)
+        mix = torch.from_numpy(np.concatenate([c, -scale * a]))
+        return (mix @ torch.cat([self.s, self.y]) - scale * g).to(grad.dtype)
+
+
+def _grown(gram: np.ndarray, column: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """``gram`` (k, k) with a last ``column`` and ``row`` (k + 1) for a new pair."""
+    k = len(gram)
+    out = np.empty((k + 1, k + 1))
+    out[:k, :k] = gram
+    out[:, k] = column
+    out[k, :] = row
+    return out
 
 
 def _strong_wolfe(x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, max_ls=25):

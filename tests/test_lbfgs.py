@@ -95,12 +95,19 @@ def _two_loop(grad, steps, changes, rho, scale):
     return r
 
 
-def test_the_direction_is_the_two_loop_recursion():
+def test_the_direction_is_the_two_loop_recursion_over_the_last_pairs():
+    """Pairs' direction is torch's two-loop recursion over the pairs kept: all of them,
+    or the last ``size`` once more were added."""
     torch.manual_seed(0)
-    for m in (0, 1, 5, 20):
+    for m in (0, 1, 5, 20, 27):
         steps = [torch.randn(30, dtype=torch.float64) for _ in range(m)]
         changes = [s + 0.3 * torch.randn(30, dtype=torch.float64) for s in steps]
         rho = [1 / float(y.dot(s)) for y, s in zip(changes, steps)]
+        pairs = lbfgs.Pairs(20)
+        for s, y, r in zip(steps, changes, rho):
+            pairs.add(s, y, r)
+        kept = slice(max(0, m - 20), m)
         grad = torch.randn(30, dtype=torch.float64)
-        torch.testing.assert_close(lbfgs._direction(grad, steps, changes, rho, 0.7),
-                                   _two_loop(grad, steps, changes, rho, 0.7))
+        torch.testing.assert_close(
+            pairs.direction(grad, 0.7),
+            _two_loop(grad, steps[kept], changes[kept], rho[kept], 0.7))
