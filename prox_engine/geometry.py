@@ -79,6 +79,7 @@ class VertexNormals:
                         self._around, self._slot, normals)
         return normals
 
+
 def grid_subsample(points: torch.Tensor, spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Ascending indices of one of ``points`` (N, 3), the first, in each occupied cell of
     a grid of ``spacing`` aligned with the origin, and how many points each cell holds."""

@@ -57,12 +57,13 @@ def _read(grid: wp.array3d(dtype=wp.float32), points: wp.array(dtype=wp.vec3),
     c0 = c00 + (c01 - c00) * fy
     c1 = c10 + (c11 - c10) * fy
     values[i] = c0 + (c1 - c0) * fx
-    if slopes != 0:
+    if slopes != 0:  # the blend's derivatives in the grid's coordinates, then in metres
+        dx = c1 - c0
+        dy = (c01 - c00) + ((c11 - c10) - (c01 - c00)) * fx
         dz0 = (c001 - c000) + ((c011 - c010) - (c001 - c000)) * fy
         dz1 = (c101 - c100) + ((c111 - c110) - (c101 - c100)) * fy
-        gradient[i] = wp.cw_mul(wp.cw_mul(wp.vec3(c1 - c0, (c01 - c00) + ((c11 - c10)
-                                                                         - (c01 - c00)) * fx,
-                                                   dz0 + (dz1 - dz0) * fx), scale), inside)
+        dz = dz0 + (dz1 - dz0) * fx
+        gradient[i] = wp.cw_mul(wp.cw_mul(wp.vec3(dx, dy, dz), scale), inside)
 
 
 _READ = CpuKernel(_read, (wp.float32, wp.vec3, None, None, None, wp.float32, wp.vec3))
