@@ -58,3 +58,21 @@ def test_reads_keep_the_points_dtype_and_pass_nan_on():
     assert values.dtype == torch.float64
     assert values[0] == 0 and torch.isnan(values[1])
     assert reader(torch.zeros(0, 3)).shape == (0,)
+
+
+def test_threads_reading_at_once_each_get_their_own_reads():
+    """A kernel's recorded launch is one mutable argument list, so each thread records its
+    own: threads launching at once with different points and sizes read what they would
+    read alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    torch.manual_seed(1)
+    bmin, bmax = torch.zeros(3), torch.ones(3)
+    reader = Trilinear(torch.randn(9, 7, 5), bmin, bmax)
+    batches = [torch.rand(n, 3) for n in (1, 17, 300, 4096) for _ in range(8)]
+    alone = [reader(points) for points in batches]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda points: [reader(points) for _ in range(20)], batches))
+    for reads, expected in zip(together, alone):
+        for read in reads:
+            assert torch.equal(read, expected)
