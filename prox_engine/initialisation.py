@@ -140,8 +140,12 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     tilt0 = (rot0 @ model_up) @ up  # each candidate keeps its lean: lying stays lying
     transl = torch.zeros(batch * count, 3)
 
-    def rotated() -> torch.Tensor:
-        return kp @ (axis_angle_to_matrix(turn) @ rot0).transpose(1, 2)
+    def rotation() -> torch.Tensor:
+        """Each candidate's orientation: its start's, turned by ``turn``."""
+        return axis_angle_to_matrix(turn) @ rot0
+
+    def rotated(turned: torch.Tensor) -> torch.Tensor:
+        return kp @ turned.transpose(1, 2)
 
     def data(points: torch.Tensor, weight: torch.Tensor, scale: float = rho) -> torch.Tensor:
         squared = ((camera.project(points) - flat_target) ** 2).sum(-1)
@@ -152,7 +156,7 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     # candidates are fitted on their own (lbfgs), so a frame starts alike in any batch.
     for _ in range(2):
         with torch.no_grad():
-            posed = rotated()
+            posed = rotated(rotation())
             depth = _depth(camera, posed, flat_target, flat_seen, centre_px)
             ray = camera.backproject(centre_px[:, 0], centre_px[:, 1], depth)
             transl = ray - torch.einsum("nk,nkd->nd", w_c, posed)
@@ -160,10 +164,10 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         transl.requires_grad_(True)
 
         def objective() -> Callable[[slice], torch.Tensor]:
-            rotation = axis_angle_to_matrix(turn) @ rot0
-            points = kp @ rotation.transpose(1, 2) + transl[:, None]
+            turned = rotation()  # once for the keypoints and the lean
+            points = rotated(turned) + transl[:, None]
             held = (torch.einsum("nk,nk->n", w_c, points[..., 2]) - depth) ** 2
-            tilt = (rotation @ model_up) @ up - tilt0
+            tilt = (turned @ model_up) @ up - tilt0
             loss = data(points, flat_w) + depth_weight * held + TILT_WEIGHT * tilt ** 2
             return lambda rows: loss[rows].sum()
 
@@ -174,23 +178,24 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         if any(failed) and events is not None:
             events.append("initialise: non-finite values in the rigid fit, undone")
     with torch.no_grad():
-        score = data(rotated() + transl[:, None], flat_seen ** 2, SCORE_RHO).view(batch, count)
-        rotation = axis_angle_to_matrix(turn) @ rot0
-        score = score + facing_cost * _turned_away(rotation @ body.forward_axis(), transl,
+        turned = rotation()
+        score = data(rotated(turned) + transl[:, None], flat_seen ** 2, SCORE_RHO).view(
+            batch, count)
+        score = score + facing_cost * _turned_away(turned @ body.forward_axis(), transl,
                                                    conf).view(batch, count)
         score = torch.nan_to_num(score, nan=math.inf).view(frames, views, count)
         score[:, 1:] += SWAP_COST  # a detector swaps sides in a minority of frames
         score = score.flatten(1)  # over labellings and candidates
         chosen, starts = [], []
         for b in range(frames):
-            rows = rotation.view(frames, -1, 3, 3)[b]
+            rows = turned.view(frames, -1, 3, 3)[b]
             legs_guessed = guessed_legs is not None and bool(guessed_legs[b])
             for pick in _distinct(score[b], rows, cands.postures, keep,
                                   seated if legs_guessed else None):
                 n = b * views * count + pick  # row of (frame, labelling, candidate)
                 c = pick % count
                 params = body.init_params(1, cands.postures[c])
-                params["global_orient"] = matrix_to_axis_angle(rotation[n:n + 1])
+                params["global_orient"] = matrix_to_axis_angle(turned[n:n + 1])
                 # The body puts its rest keypoints at R (k - pivot) + pivot + transl.
                 params["transl"] = (transl[n] - pivot[c])[None]
                 starts.append(params)
