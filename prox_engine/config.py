@@ -204,7 +204,7 @@ class FitConfig:
     upright_weight: float = 0.0
     upright_rho: float = 0.35
     # Every stage: a trunk within level_rho (radians) of the horizontal is drawn level
-    # (losses.level, a reward, 0 beyond: a fit that never comes that near level does not
+    # (keypoint_terms.trunk_terms, a reward, 0 beyond: a fit that never comes that near level does not
     # change at all): a lying trunk seen along the camera's rays was fitted pitched up
     # toward the camera, hips 30 cm off. The start choice and the restarts' choices leave
     # it out: it shapes fits, it does not rank a lying posture over a seated one.
@@ -213,7 +213,7 @@ class FitConfig:
     # Every stage: the shin of a leg the detector reports down to the knee and no further
     # (keypoints.cut_legs: cut off by the image's edge, or wholly hidden below the knee)
     # is drawn toward hanging plumb, as much as the trunk is upright
-    # (losses.plumb_shins). Nothing else places that shin, and the scale search stands
+    # (keypoint_terms.plumb_shins). Nothing else places that shin, and the scale search stands
     # the body on the guess.
     plumb_shin_weight: float = 0.0
     contact_rho: float = 0.05

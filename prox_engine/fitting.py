@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import lbfgs, losses
+from . import keypoint_terms, lbfgs, losses
 from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
@@ -579,8 +579,9 @@ class Fitter:
                    conf: torch.Tensor) -> torch.Tensor:
         """The stage's weighted robust reprojection error (B,) of the keypoints ``target``
         (B, K, 2) with confidences ``conf`` (B, K)."""
-        return losses.keypoint_data(out, self.camera, target,
-                                    self._keypoint_weights(stage, conf), self.config.data_rho)
+        return keypoint_terms.keypoint_data(out.keypoints, self.camera, target,
+                                            self._keypoint_weights(stage, conf),
+                                            self.config.data_rho)
 
     def _terms(self, stage: Stage, params: Params, target: torch.Tensor, conf: torch.Tensor,
                depth: list, previous: torch.Tensor | None, free: Sequence[str] = ()
@@ -605,20 +606,21 @@ class Fitter:
                      in priors.items() if not set(reads) & set(free)}
 
         def terms(out: BodyOutput) -> dict[str, torch.Tensor]:
-            values = {"data": losses.keypoint_data(out, self.camera, target, weights,
-                                                   cfg.data_rho),
+            values = {"data": keypoint_terms.keypoint_data(out.keypoints, self.camera, target,
+                                                           weights, cfg.data_rho),
                       "joint_limits": cfg.joint_limit_weight * body.joint_limits(params)}
             for name, (weight, prior, _) in priors.items():
                 values[name] = fixed[name] if name in fixed else weight * prior(params)
-            angle = (losses.trunk_angle(out, self.up)  # one for both terms
-                     if cfg.upright_weight > 0 or cfg.level_weight > 0 else None)
-            if cfg.upright_weight > 0:
-                values["upright"] = upright * losses.upright(angle, cfg.upright_rho)
-            if cfg.level_weight > 0:
-                values["level"] = cfg.level_weight * losses.level(angle, cfg.level_rho)
+            if cfg.upright_weight > 0 or cfg.level_weight > 0:  # one kernel for both
+                standing, lying = keypoint_terms.trunk_terms(out.keypoints, self.up,
+                                                             cfg.upright_rho, cfg.level_rho)
+                if cfg.upright_weight > 0:
+                    values["upright"] = upright * standing
+                if cfg.level_weight > 0:
+                    values["level"] = cfg.level_weight * lying
             if cfg.plumb_shin_weight > 0:
-                values["plumb_shins"] = cfg.plumb_shin_weight * losses.plumb_shins(
-                    out, self.up, cut)
+                values["plumb_shins"] = cfg.plumb_shin_weight * keypoint_terms.plumb_shins(
+                    out.keypoints, self.up, cut)
             if w.get("self_penetration", 0) > 0:
                 values["self_penetration"] = (w["self_penetration"]
                                               * losses.self_penetration(out, body))

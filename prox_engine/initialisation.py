@@ -23,8 +23,8 @@ from . import lbfgs
 from .body.base import BodyModel, Params
 from .camera import Camera
 from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
+from .keypoint_terms import keypoint_data
 from .keypoints import BODY, TORSO_EDGES
-from .losses import gmof
 
 TORSO = [1, 2, 5, 8, 9, 12]  # neck, shoulders, mid-hip, hips: nearly rigid in any posture
 LIMB_WEIGHT = 0.25  # the other body keypoints guide the rigid fit less than the torso
@@ -148,8 +148,7 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         return kp @ turned.transpose(1, 2)
 
     def data(points: torch.Tensor, weight: torch.Tensor, scale: float = rho) -> torch.Tensor:
-        squared = ((camera.project(points) - flat_target) ** 2).sum(-1)
-        return (weight * gmof(squared, scale)).sum(1)
+        return keypoint_data(points, camera, flat_target, weight, scale)
 
     # Two rounds: a candidate turns about world up (and leans a little) in the first, and
     # its similar-triangles depth follows its new orientation in the second. Each frame's

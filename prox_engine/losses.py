@@ -6,72 +6,14 @@ import math
 import torch
 
 from .body.base import BodyModel, BodyOutput
-from .camera import Camera
 from .geometry import VertexNormals, grid_subsample, vertex_normals
-from .keypoints import ANKLES, BODY, KNEES, MID_HIP, NECK
+from .keypoints import BODY
 from .scene import Scene
 
 
 def gmof(squared: torch.Tensor, rho: float) -> torch.Tensor:
     """Geman-McClure of a squared residual, scaled so that it is ~squared near zero."""
     return rho ** 2 * squared / (squared + rho ** 2)
-
-
-def keypoint_data(out: BodyOutput, camera: Camera, target: torch.Tensor,
-                  weight: torch.Tensor, rho: float) -> torch.Tensor:
-    """Robust reprojection error; ``target`` (B, K, 2) pixels, ``weight`` (B, K) =
-    (joint weight * confidence)^2 as in SMPLify-X."""
-    projected = camera.project(out.keypoints)
-    squared = ((projected - target) ** 2).sum(-1)
-    return (weight * gmof(squared, rho)).sum(1)
-
-
-def _trunk(out: BodyOutput) -> torch.Tensor:
-    """(B, 3) the trunk: BODY_25 mid-hip to neck."""
-    return out.keypoints[:, NECK] - out.keypoints[:, MID_HIP]
-
-
-def upright(angle: torch.Tensor, rho: float) -> torch.Tensor:
-    """Robust squared angle (B,) between the trunk and world up (:func:`trunk_angle`):
-    standing and sitting people hold their trunks near vertical, and a trunk leaning
-    toward or away from the camera projects almost alike."""
-    return gmof(angle ** 2, rho)
-
-
-def level(angle: torch.Tensor, rho: float) -> torch.Tensor:
-    """A reward (B,) for a trunk lying level: -rho^2 (1 - (e / rho)^2)^2 for a trunk
-    ``e`` radians from the horizontal (its :func:`trunk_angle` pi / 2 + e), about 2 e^2 -
-    rho^2 near 0, exactly 0 with no gradient from ``rho`` on: a mattress holds a lying
-    trunk level, while a trunk lying along the camera's rays projects almost alike pitched
-    up toward the camera. Trunks ``rho`` or more from level (upright, seated, reclining)
-    neither pay nor feel it, so their fits do not change at all."""
-    off_level = ((angle - torch.pi / 2) / rho).square().clamp(max=1.0)
-    return -rho ** 2 * (1 - off_level).square()
-
-
-def trunk_angle(out: BodyOutput, up: torch.Tensor) -> torch.Tensor:
-    """(B,) the angle (radians, 0 to pi) between the trunk (BODY_25 mid-hip to neck) and
-    world ``up`` (3,) in camera coordinates."""
-    trunk = _trunk(out)
-    return torch.atan2(torch.linalg.cross(trunk, up.expand_as(trunk)).norm(dim=-1), trunk @ up)
-
-
-def plumb_shins(out: BodyOutput, up: torch.Tensor, cut: torch.Tensor) -> torch.Tensor:
-    """(B,) how far the shins of the legs ``cut`` ((B, 2) bool, per leg of SHINS) are from
-    hanging plumb: 1 + the cosine of each shin (knee to ankle) with world ``up`` (3,) in
-    camera coordinates, 0 straight down, 2 straight up, summed over those legs. Weighted
-    by the square of the trunk's uprightness (the cosine of mid-hip to neck with up,
-    clamped at 0, held constant): a standing or seated person's lower legs hang about
-    plumb, a lying one's do not. Exactly 0, and nothing computed, without such a leg."""
-    keypoints = out.keypoints
-    if not bool(cut.any()):
-        return keypoints.new_zeros(len(keypoints))
-    with torch.no_grad():
-        trunk = _trunk(out)
-        uprightness = ((trunk @ up) / trunk.norm(dim=-1).clamp_min(1e-9)).clamp(min=0)
-    shins = keypoints[:, ANKLES] - keypoints[:, KNEES]  # (B, 2, 3), legs as SHINS
-    cosine = (shins @ up) / shins.norm(dim=-1).clamp_min(1e-9)
-    return uprightness ** 2 * (cut * (1 + cosine)).sum(1)
 
 
 def penetration_vertices(body: BodyModel, spacing: float, rest: torch.Tensor | None = None

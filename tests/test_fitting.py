@@ -117,14 +117,17 @@ def test_upright_term_measures_the_trunk_against_world_up(body):
     """Seen by a tilted, rolled, off-centre camera: a standing trunk costs nothing, one
     tipped by 20 degrees the robust square of 20 degrees, and a lying one little more
     than that (the term saturates), whichever way the camera is turned."""
-    from prox_engine.losses import gmof, trunk_angle, upright
+    from prox_engine.keypoint_terms import trunk_terms
+    from prox_engine.losses import gmof
 
     cam2world = tilted_camera()
     up = floor_scene(cam2world).up_in_camera()
     rho = load_config("prox").upright_rho
-    standing = float(upright(trunk_angle(_leaning(body, cam2world, 0.0), up), rho))
-    tipped = float(upright(trunk_angle(_leaning(body, cam2world, 20.0), up), rho))
-    lying = float(upright(trunk_angle(_leaning(body, cam2world, 90.0), up), rho))
+
+    def upright(degrees: float) -> float:
+        return float(trunk_terms(_leaning(body, cam2world, degrees).keypoints, up, rho, 0.4)[0])
+
+    standing, tipped, lying = upright(0.0), upright(20.0), upright(90.0)
     trunk_tilt = math.radians(20.0)  # the mean body's trunk is within a degree of vertical
     assert standing < 0.02 * tipped
     assert abs(tipped - float(gmof(torch.tensor(trunk_tilt ** 2), rho))) < 0.15 * tipped
@@ -135,14 +138,17 @@ def test_level_term_rewards_only_a_trunk_near_level(body):
     """Seen by a tilted, rolled, off-centre camera: a lying trunk gets the whole reward,
     one pitched 10 degrees out of level less of it, and a reclining (45 degrees) or
     standing trunk nothing and no gradient, so their fits cannot change."""
-    from prox_engine.losses import level, trunk_angle
+    from prox_engine.keypoint_terms import trunk_terms
 
     cam2world = tilted_camera()
     up = floor_scene(cam2world).up_in_camera()
     rho = load_config("prox").level_rho
+
+    def level(keypoints: torch.Tensor) -> torch.Tensor:
+        return trunk_terms(keypoints, up, 0.35, rho)[1]
+
     lying, pitched, reclined, standing = (
-        float(level(trunk_angle(_leaning(body, cam2world, tip), up), rho))
-        for tip in (90.0, 80.0, 45.0, 0.0))
+        float(level(_leaning(body, cam2world, tip).keypoints)) for tip in (90.0, 80.0, 45.0, 0.0))
 
     def reward(degrees: float) -> float:
         return -rho ** 2 * (1 - (math.radians(degrees) / rho) ** 2) ** 2
@@ -153,7 +159,7 @@ def test_level_term_rewards_only_a_trunk_near_level(body):
     assert reclined == 0.0 and standing == 0.0
     out = _leaning(body, cam2world, 45.0)
     out.keypoints.requires_grad_(True)
-    level(trunk_angle(out, up), rho).sum().backward()
+    level(out.keypoints).sum().backward()
     assert float(out.keypoints.grad.abs().max()) == 0.0
 
 
@@ -216,8 +222,8 @@ def test_cut_off_shins_are_drawn_plumb(body):
     no further costs 1 + the cosine of its shin with world up, times the trunk's
     uprightness squared (worked out here in the world frame); a leg with its ankle or
     without its knee reported costs nothing, nor does a lying body."""
+    from prox_engine.keypoint_terms import plumb_shins
     from prox_engine.keypoints import cut_legs
-    from prox_engine.losses import plumb_shins
 
     cam2world = tilted_camera()
     up = floor_scene(cam2world).up_in_camera()
@@ -236,7 +242,7 @@ def test_cut_off_shins_are_drawn_plumb(body):
             shin = world[ankle] - world[knee]
             value += cut[leg] * (1 + float(shin[2] / shin.norm()))
         expected = max(0.0, float(trunk[2] / trunk.norm())) ** 2 * value
-        measured = plumb_shins(BodyOutput(None, camera[None]), up, torch.tensor([cut]))
+        measured = plumb_shins(camera[None], up, torch.tensor([cut]))
         return float(measured[0]), expected
 
     bent, expected = cost(0.0, 60.0, [True, False])
@@ -252,9 +258,9 @@ def test_cut_off_shins_are_drawn_plumb(body):
 
 def test_plumb_shins_act_only_on_cut_legs(body):
     """In the fitter's terms the plumb-shin term is the configured weight times
-    losses.plumb_shins on the frames with a leg cut off below the knee, and exactly 0 on
-    the others (whose objective is then the one without the term)."""
-    from prox_engine.losses import plumb_shins
+    keypoint_terms.plumb_shins on the frames with a leg cut off below the knee, and exactly
+    0 on the others (whose objective is then the one without the term)."""
+    from prox_engine.keypoint_terms import plumb_shins
 
     cam2world = tilted_camera()
     config = load_config("prox")
@@ -268,7 +274,7 @@ def test_plumb_shins_act_only_on_cut_legs(body):
     target = CAMERA.project(out.keypoints)[..., :2]
     terms = fitter._terms(config.stages[0], params, target, conf, [None, None], None)(out)
     assert float(terms["plumb_shins"][0]) == 0.0
-    expected = config.plumb_shin_weight * plumb_shins(out, fitter.up,
+    expected = config.plumb_shin_weight * plumb_shins(out.keypoints, fitter.up,
                                                       torch.tensor([[True, False]] * 2))
     assert float(terms["plumb_shins"][1]) == pytest.approx(float(expected[1]), rel=1e-5)
     assert float(terms["plumb_shins"][1]) > 0.3 * config.plumb_shin_weight

@@ -1,0 +1,219 @@
+"""The terms that read only the posed keypoints, each one warp kernel that writes the
+term's value and its gradient in one pass.
+
+A keypoint stage's evaluation is about a millisecond, and before these kernels half of it
+was the reprojection, trunk and shin terms: some 150 small torch operations forward, as
+many nodes backward, at 2-5 us each for (B, 118, 3) tensors. Here each term is one launch
+and one autograd node whose backward only scales the gradient written with the value."""
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from .camera import Camera
+from .keypoints import ANKLES, KNEES, MID_HIP, NECK
+from .warp_launch import CpuKernel
+
+NEAREST_DEPTH = wp.constant(1e-3)  # m: nearer points project as if this deep, not pulled
+
+
+@wp.func
+def _robust(squared: float, rho: float) -> wp.vec2:
+    """Geman-McClure of a squared residual (:func:`losses.gmof`) and its derivative."""
+    rho2 = rho * rho
+    return wp.vec2(rho2 * squared / (squared + rho2),
+                   rho2 * rho2 / ((squared + rho2) * (squared + rho2)))
+
+
+@wp.kernel
+def _reprojection(points: wp.array2d(dtype=wp.vec3), target: wp.array2d(dtype=wp.vec2),
+                  weight: wp.array2d(dtype=wp.float32), focal: wp.vec2, centre: wp.vec2,
+                  radial: wp.vec3, tangential: wp.vec2, rho: float,
+                  value: wp.array(dtype=wp.float32), gradient: wp.array2d(dtype=wp.vec3)):
+    b = wp.tid()
+    k1 = radial[0]
+    k2 = radial[1]
+    k3 = radial[2]
+    p1 = tangential[0]
+    p2 = tangential[1]
+    total = float(0.0)
+    for k in range(points.shape[1]):
+        w = weight[b, k]
+        slope = wp.vec3(0.0, 0.0, 0.0)
+        if w != 0.0:
+            p = points[b, k]
+            z = p[2]
+            deep = float(1.0)
+            if not (z > NEAREST_DEPTH) and z == z:  # not NaN: NaN passes through
+                z = NEAREST_DEPTH
+                deep = 0.0
+            x = p[0] / z
+            y = p[1] / z
+            r2 = x * x + y * y
+            scale = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+            dscale = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r2 * r2  # d scale / d r2
+            xd = x * scale + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            yd = y * scale + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+            eu = xd * focal[0] + centre[0] - target[b, k][0]
+            ev = yd * focal[1] + centre[1] - target[b, k][1]
+            robust = _robust(eu * eu + ev * ev, rho)
+            total += w * robust[0]
+            gu = 2.0 * w * robust[1] * eu * focal[0]  # d term / d xd, d yd
+            gv = 2.0 * w * robust[1] * ev * focal[1]
+            cross = 2.0 * x * y * dscale
+            gx = (gu * (scale + 2.0 * x * x * dscale + 2.0 * p1 * y + 6.0 * p2 * x)
+                  + gv * (cross + 2.0 * p1 * x + 2.0 * p2 * y))
+            gy = (gu * (cross + 2.0 * p1 * x + 2.0 * p2 * y)
+                  + gv * (scale + 2.0 * y * y * dscale + 6.0 * p1 * y + 2.0 * p2 * x))
+            slope = wp.vec3(gx / z, gy / z, -deep * (gx * x + gy * y) / z)
+        gradient[b, k] = slope
+    value[b] = total
+
+
+@wp.kernel
+def _trunk(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: int,
+           upright_rho: float, level_rho: float, value: wp.array2d(dtype=wp.float32),
+           gradient: wp.array3d(dtype=wp.vec3)):
+    b = wp.tid()
+    trunk = points[b, neck] - points[b, mid_hip]
+    along = wp.dot(trunk, up)
+    normal = wp.cross(trunk, up)
+    across = wp.length(normal)
+    angle = wp.atan2(across, along)
+    # d angle / d trunk = (along d across - across d along) / |trunk|^2 (up is a unit)
+    turn = wp.vec3(0.0, 0.0, 0.0)
+    if across > 0.0:
+        turn = along * wp.cross(up, normal) / across
+    slope = (turn - across * up) / wp.dot(trunk, trunk)
+    robust = _robust(angle * angle, upright_rho)
+    value[b, 0] = robust[0]
+    gradient[b, 0, neck] = 2.0 * angle * robust[1] * slope
+    gradient[b, 0, mid_hip] = -2.0 * angle * robust[1] * slope
+    # level: -rho^2 (1 - q)^2, q = ((angle - pi/2) / rho)^2 clamped at 1
+    off = angle - 0.5 * wp.pi
+    q = off * off / (level_rho * level_rho)
+    lying = float(0.0)
+    if q < 1.0:
+        lying = 4.0 * (1.0 - q) * off
+    else:
+        q = 1.0
+    value[b, 1] = -level_rho * level_rho * (1.0 - q) * (1.0 - q)
+    gradient[b, 1, neck] = lying * slope
+    gradient[b, 1, mid_hip] = -lying * slope
+
+
+@wp.kernel
+def _plumb(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: int,
+           knees: wp.vec2i, ankles: wp.vec2i, cut: wp.array2d(dtype=wp.float32),
+           value: wp.array(dtype=wp.float32), gradient: wp.array2d(dtype=wp.vec3)):
+    b = wp.tid()
+    trunk = points[b, neck] - points[b, mid_hip]
+    upright = wp.max(wp.dot(trunk, up) / wp.max(wp.length(trunk), 1e-9), 0.0)
+    weight = upright * upright  # held constant: no gradient through the trunk
+    total = float(0.0)
+    for leg in range(2):
+        shin = points[b, ankles[leg]] - points[b, knees[leg]]
+        length = wp.max(wp.length(shin), 1e-9)
+        cosine = wp.dot(shin, up) / length
+        slope = wp.vec3(0.0, 0.0, 0.0)
+        if cut[b, leg] != 0.0:
+            total += 1.0 + cosine
+            if wp.length(shin) > 1e-9:
+                slope = weight * (up - cosine * shin / length) / length
+        gradient[b, ankles[leg]] = slope
+        gradient[b, knees[leg]] = -slope
+    value[b] = weight * total
+
+
+_REPROJECTION = CpuKernel(_reprojection, (wp.vec3, wp.vec2, wp.float32, None, None, None,
+                                          None, None, wp.float32, wp.vec3))
+_TRUNK = CpuKernel(_trunk, (wp.vec3, None, None, None, None, None, wp.float32, wp.vec3))
+_PLUMB = CpuKernel(_plumb, (wp.vec3, None, None, None, None, None, wp.float32, wp.float32,
+                            wp.vec3))
+
+
+def keypoint_data(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
+                  weight: torch.Tensor, rho: float) -> torch.Tensor:
+    """Robust reprojection error (B,) of camera-frame ``keypoints`` (B, K, 3): the sum of
+    ``weight`` (B, K) = (joint weight * confidence)^2, as in SMPLify-X, times the
+    Geman-McClure (``rho`` px) of the squared pixel distance between the projected keypoint
+    and ``target`` (B, K, 2). A keypoint of weight 0 adds nothing, even where it does not
+    project (behind the camera with lens distortion, where the torch form read NaN)."""
+    points = _points(keypoints)
+    k1, k2, p1, p2, k3 = (list(camera.k) + [0.0] * 5)[:5]
+    value = torch.empty(len(points))
+    gradient = torch.empty(points.shape)
+    _REPROJECTION(len(points), points, target.detach().float().contiguous(),
+                  weight.detach().float().contiguous(), wp.vec2(camera.fx, camera.fy),
+                  wp.vec2(camera.cx, camera.cy), wp.vec3(k1, k2, k3), wp.vec2(p1, p2),
+                  float(rho), value, gradient)
+    return _Computed.apply(keypoints, value, gradient)
+
+
+def trunk_terms(keypoints: torch.Tensor, up: torch.Tensor, upright_rho: float,
+                level_rho: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two terms (B,) of the angle between the trunk (BODY_25 mid-hip to neck) of
+    camera-frame ``keypoints`` (B, K, 3) and world ``up`` (3,), a unit vector in camera
+    coordinates:
+
+    - upright: its robust square (Geman-McClure, ``upright_rho`` rad): standing and
+      sitting people hold their trunks near vertical, and a trunk leaning toward or away
+      from the camera projects almost alike;
+    - level: a reward for a trunk lying level, -rho^2 (1 - (e / rho)^2)^2 for a trunk
+      ``e`` radians from the horizontal (rho = ``level_rho``), about 2 e^2 - rho^2 near 0,
+      exactly 0 with no gradient from rho on: a mattress holds a lying trunk level, while a
+      trunk lying along the camera's rays projects almost alike pitched up toward the
+      camera. Trunks rho or more from level (upright, seated, reclining) neither pay nor
+      feel it, so their fits do not change at all."""
+    points = _points(keypoints)
+    value = torch.empty(len(points), 2)
+    gradient = torch.zeros(len(points), 2, points.shape[1], 3)
+    _TRUNK(len(points), points, _vector(up), NECK, MID_HIP, float(upright_rho),
+           float(level_rho), value, gradient)
+    both = _Computed.apply(keypoints, value, gradient)
+    return both[:, 0], both[:, 1]
+
+
+def plumb_shins(keypoints: torch.Tensor, up: torch.Tensor, cut: torch.Tensor
+                ) -> torch.Tensor:
+    """(B,) how far the shins of the legs ``cut`` ((B, 2) bool, per leg of SHINS) of
+    camera-frame ``keypoints`` (B, K, 3) are from hanging plumb: 1 + the cosine of each
+    shin (knee to ankle) with world ``up`` (3,), a unit vector in camera coordinates, 0
+    straight down, 2 straight up, summed over those legs. Weighted
+    by the square of the trunk's uprightness (the cosine of mid-hip to neck with up,
+    clamped at 0, held constant): a standing or seated person's lower legs hang about
+    plumb, a lying one's do not. Exactly 0, and nothing computed, without such a leg."""
+    if not bool(cut.any()):
+        return keypoints.new_zeros(len(keypoints))
+    points = _points(keypoints)
+    value = torch.empty(len(points))
+    gradient = torch.zeros(points.shape)
+    _PLUMB(len(points), points, _vector(up), NECK, MID_HIP, wp.vec2i(*KNEES), wp.vec2i(*ANKLES),
+           cut.float().contiguous(), value, gradient)
+    return _Computed.apply(keypoints, value, gradient)
+
+
+def _points(keypoints: torch.Tensor) -> torch.Tensor:
+    return keypoints.detach().float().contiguous()
+
+
+def _vector(up: torch.Tensor) -> wp.vec3:
+    return wp.vec3(*up.tolist())
+
+
+class _Computed(torch.autograd.Function):
+    """A term's ``value`` (B, ...) of ``keypoints`` (B, K, 3), differentiable through the
+    ``gradient`` (B, ..., K, 3) its kernel wrote with it."""
+
+    @staticmethod
+    def forward(ctx, keypoints: torch.Tensor, value: torch.Tensor, gradient: torch.Tensor
+                ) -> torch.Tensor:
+        ctx.save_for_backward(gradient)
+        return value.to(keypoints.dtype)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None, None]:
+        (gradient,) = ctx.saved_tensors
+        if gradient.dim() == 3:
+            return grad[:, None, None] * gradient, None, None
+        return torch.einsum("bt,btkd->bkd", grad, gradient), None, None
