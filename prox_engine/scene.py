@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from . import assets
+from .sample_grid import SampleGrid
 from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples, surface_tree,
                         triangle_signed_distance)
 
@@ -33,7 +34,7 @@ class Scene:
         self._areas64 = normals.norm(dim=1) / 2
         self._normals64 = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
         samples, self._sample_face = surface_samples(self.vertices, self.faces, sample_spacing)
-        self._tree = surface_tree(samples)
+        self._samples = SampleGrid(samples, surface_tree(samples))
 
     @classmethod
     def load(cls, vertices: np.ndarray, faces: np.ndarray, cam2world: np.ndarray,
@@ -82,7 +83,7 @@ class Scene:
         return torch.relu(-values).reshape(grid.shape)
 
     def _triangle_distance(self, world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return triangle_signed_distance(world, self._tree, self._sample_face,
+        return triangle_signed_distance(world, self._samples, self._sample_face,
                                         self._triangles64, self._normals64, k=4)
 
     def sdf_normals(self, points_cam: torch.Tensor) -> torch.Tensor:
@@ -95,8 +96,8 @@ class Scene:
         themselves, which resolves surfaces thinner than a voxel: a 3 cm tabletop is a 3 cm
         slab here, nothing on a 3 cm grid; signed by the area-weighted vote of the nearest
         faces (:func:`triangle_signed_distance`), which noisy edges cannot flip."""
-        distance, _ = triangle_signed_distance(self.to_world(points_cam).double(), self._tree,
-                                               self._sample_face, self._triangles64,
+        distance, _ = triangle_signed_distance(self.to_world(points_cam).double(),
+                                               self._samples, self._sample_face, self._triangles64,
                                                self._normals64, areas=self._areas64)
         return distance.float()
 

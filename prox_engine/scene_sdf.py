@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from .nearest_face import nearest_faces
 from .output import atomic_write_bytes, atomic_write_text
+from .sample_grid import SampleGrid
 from .trilinear import Trilinear
 
 
@@ -158,13 +159,13 @@ def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
                                torch.tensor(bmax, dtype=torch.float32))
 
 
-def triangle_signed_distance(points: torch.Tensor, tree: cKDTree, sample_face: np.ndarray,
-                             tri: torch.Tensor, normals: torch.Tensor, k: int = 6,
-                             areas: torch.Tensor | None = None
+def triangle_signed_distance(points: torch.Tensor, tree: cKDTree | SampleGrid,
+                             sample_face: np.ndarray, tri: torch.Tensor, normals: torch.Tensor,
+                             k: int = 6, areas: torch.Tensor | None = None
                              ) -> tuple[torch.Tensor, torch.Tensor]:
     """Signed distance (N,) and nearest surface point (N, 3) of points (N, 3), the
-    distance differentiable in the points (the k-d tree uses as many threads as torch, so
-    PROX_THREADS bounds it).
+    distance differentiable in the points; ``tree`` finds the surface samples nearest to
+    them (a k-d tree uses as many threads as torch, so PROX_THREADS bounds it).
 
     The candidates are the faces of the k nearest surface samples. Among faces at the same
     distance (nearest point on a shared edge or vertex) the one whose plane the point is

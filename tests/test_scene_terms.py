@@ -121,7 +121,7 @@ def test_exact_distance_gradient_is_the_direction_from_the_nearest_surface_point
     points.requires_grad_(True)
 
     def distance(p):
-        return triangle_signed_distance(p, scene._tree, scene._sample_face,
+        return triangle_signed_distance(p, scene._samples, scene._sample_face,
                                         scene._triangles64, scene._normals64)[0]
 
     d = distance(points)
@@ -345,7 +345,7 @@ def test_exact_sign_holds_in_the_air_above_a_noisy_chair(sitting_data):
     top = v[furniture, 2].max()
     axes = [np.linspace(-2.5, 2.5, 60)] * 2 + [np.linspace(top + 0.1, top + 0.6, 6)]
     air = torch.from_numpy(np.stack(np.meshgrid(*axes), -1).reshape(-1, 3))
-    nearest_face, _ = triangle_signed_distance(air, scene._tree, scene._sample_face,
+    nearest_face, _ = triangle_signed_distance(air, scene._samples, scene._sample_face,
                                                scene._triangles64, scene._normals64)
     assert (nearest_face < 0).sum() > 0  # the scene has the noisy edge this is about
     camera = (air.float() - scene.cam2world[:3, 3]) @ scene.cam2world[:3, :3]
