@@ -7,7 +7,11 @@ curvatures, and a frame's fit depends on which frames it is batched with (``prox
 of rows (a frame's candidate bodies) runs torch's algorithm as a coroutine of its own, and
 the groups advance in lockstep: every round poses the points all groups ask for in one
 batched evaluation. A group follows the iterations it follows alone, up to the rounding
-of batched arithmetic; a group fitted alone follows ``torch.optim.LBFGS`` exactly.
+of batched arithmetic; a group fitted alone follows ``torch.optim.LBFGS`` up to rounding.
+
+The algorithm's own arithmetic (points, directions, line searches) is numpy's in float64
+on vectors of a few hundred values, where each torch operation cost 1-5 us: a third of a
+keypoint evaluation's time went into the optimiser around it.
 """
 from __future__ import annotations
 
@@ -18,14 +22,14 @@ from typing import Callable, Generator
 import numpy as np
 import torch
 from scipy.linalg import solve_triangular
-from torch.optim.lbfgs import _cubic_interpolate
 
 # Evaluates the model at the variables' current values and returns each group's loss.
 Objective = Callable[[], Callable[[slice], torch.Tensor]]
-# A coroutine yields the flat point it wants evaluated and is sent (loss, gradient) there,
-# or None when the evaluation failed (a non-finite point some term rejects).
-Evaluation = tuple[float, torch.Tensor] | None
-Search = Generator[torch.Tensor, Evaluation, tuple]
+# A coroutine yields the flat point (float64) it wants evaluated and is sent (loss,
+# gradient) there, or None when the evaluation failed (a non-finite point some term
+# rejects).
+Evaluation = tuple[float, np.ndarray] | None
+Search = Generator[np.ndarray, Evaluation, tuple]
 
 
 class _Failed(Exception):
@@ -72,14 +76,14 @@ def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[s
 
 
 def _evaluate(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
-              asked: dict[int, torch.Tensor], resting: dict[int, torch.Tensor]
+              asked: dict[int, np.ndarray], resting: dict[int, np.ndarray]
               ) -> dict[int, Evaluation]:
     """Each asking group's loss and flat gradient at its point, in one evaluation; its rows
     then rest there (``resting``: every running group asks each round, so no group's rows
     need putting back). A group whose point is not finite gets None, and so does one whose
     point makes the objective raise (found by evaluating the groups one by one from their
     resting points, which only happens then)."""
-    finite = {i: x for i, x in asked.items() if bool(torch.isfinite(x).all())}
+    finite = {i: x for i, x in asked.items() if np.isfinite(x).all()}
     answers: dict[int, Evaluation] = {i: None for i in asked if i not in finite}
     try:
         answers.update(_answers(variables, objective, groups, finite, resting))
@@ -93,8 +97,8 @@ def _evaluate(variables: list[torch.Tensor], objective: Objective, groups: list[
 
 
 def _answers(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
-             points: dict[int, torch.Tensor], resting: dict[int, torch.Tensor]
-             ) -> dict[int, tuple[float, torch.Tensor]]:
+             points: dict[int, np.ndarray], resting: dict[int, np.ndarray]
+             ) -> dict[int, tuple[float, np.ndarray]]:
     """Loss and flat gradient of the groups at ``points``, where their rows then rest;
     if the evaluation raises, they are put back to their ``resting`` points first."""
     if not points:
@@ -112,25 +116,31 @@ def _answers(variables: list[torch.Tensor], objective: Objective, groups: list[s
         raise
     resting.update(points)
     grads = [g if g is not None else torch.zeros_like(v) for g, v in zip(grads, variables)]
-    return {i: (float(loss.detach()), torch.cat([g[groups[i]].reshape(-1) for g in grads]))
+    return {i: (float(loss.detach()), _float64(torch.cat([g[groups[i]].reshape(-1)
+                                                          for g in grads])))
             for i, loss in losses.items()}
 
 
-def _flat(variables: list[torch.Tensor], rows: slice) -> torch.Tensor:
+def _flat(variables: list[torch.Tensor], rows: slice) -> np.ndarray:
     """A group's parameters as torch's L-BFGS flattens them: variable by variable."""
-    return torch.cat([v.detach()[rows].reshape(-1) for v in variables])
+    return _float64(torch.cat([v.detach()[rows].reshape(-1) for v in variables]))
 
 
-def _assign(variables: list[torch.Tensor], rows: slice, point: torch.Tensor) -> None:
+def _float64(values: torch.Tensor) -> np.ndarray:
+    return values.numpy().astype(np.float64)
+
+
+def _assign(variables: list[torch.Tensor], rows: slice, point: np.ndarray) -> None:
+    """The variables' ``rows`` set to the flat ``point`` (in their own dtype)."""
     offset = 0
     with torch.no_grad():
         for v in variables:
             part = v[rows]
-            v[rows] = point[offset:offset + part.numel()].view_as(part)
+            v[rows] = torch.from_numpy(point[offset:offset + part.numel()]).view_as(part)
             offset += part.numel()
 
 
-def _calls(x: torch.Tensor, max_iter: int, max_calls: int, ftol: float | None,
+def _calls(x: np.ndarray, max_iter: int, max_calls: int, ftol: float | None,
            history: int) -> Search:
     """A group's minimisation: up to ``max_calls`` calls of torch's step, each undone if
     it fails, the loss compared before and after each. Returns the final point and whether
@@ -138,14 +148,14 @@ def _calls(x: torch.Tensor, max_iter: int, max_calls: int, ftol: float | None,
     state: dict = {"n_iter": 0, "pairs": Pairs(history), "H_diag": 1}
     answer = yield x
     for call in range(max_calls):
-        backup = x.clone()
+        backup = x
         try:
             if answer is None:
                 raise _Failed
             x, loss = yield from _step(x, answer, state, max_iter, history)
         except (_Failed, IndexError, ValueError):
             loss = math.nan
-        if not (math.isfinite(loss) and bool(torch.isfinite(x).all())):
+        if not (math.isfinite(loss) and np.isfinite(x).all()):
             return backup, True
         if call + 1 == max_calls:
             break
@@ -156,15 +166,15 @@ def _calls(x: torch.Tensor, max_iter: int, max_calls: int, ftol: float | None,
     return x, False
 
 
-def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_iter: int,
+def _step(x: np.ndarray, answer: tuple[float, np.ndarray], state: dict, max_iter: int,
           history: int, tolerance_grad: float = 1e-7, tolerance_change: float = 1e-10
-          ) -> Generator[torch.Tensor, Evaluation, tuple[torch.Tensor, float]]:
+          ) -> Generator[np.ndarray, Evaluation, tuple[np.ndarray, float]]:
     """``torch.optim.LBFGS.step`` (lr 1, strong Wolfe) from ``x`` where the loss and flat
     gradient are ``answer``; returns the new point and the loss at the call's start."""
     max_eval = max_iter * 5 // 4
     orig_loss, flat_grad = answer
     loss, current_evals = orig_loss, 1
-    if flat_grad.abs().max() <= tolerance_grad:
+    if np.abs(flat_grad).max() <= tolerance_grad:
         return x, orig_loss
     d, t = state.get("d"), state.get("t")
     pairs = state["pairs"]
@@ -174,31 +184,27 @@ def _step(x: torch.Tensor, answer: tuple[float, torch.Tensor], state: dict, max_
         n_iter += 1
         state["n_iter"] += 1
         if state["n_iter"] == 1:
-            d = flat_grad.neg()
+            d = -flat_grad
         else:
-            y = flat_grad.sub(prev_flat_grad)
-            s = d.mul(t)
-            ys = float(y.dot(s))
+            y = flat_grad - prev_flat_grad
+            s = d * t
+            ys = float(y @ s)
             if ys > 1e-10:
                 pairs.add(s, y, 1.0 / ys)
-                state["H_diag"] = ys / float(y.dot(y))
+                state["H_diag"] = ys / float(y @ y)
             d = pairs.direction(flat_grad, state["H_diag"])
-        if prev_flat_grad is None:
-            prev_flat_grad = flat_grad.clone(memory_format=torch.contiguous_format)
-        else:
-            prev_flat_grad.copy_(flat_grad)
-        prev_loss = loss
-        t = min(1.0, 1.0 / flat_grad.abs().sum()) if state["n_iter"] == 1 else 1.0
-        gtd = flat_grad.dot(d)
+        prev_flat_grad, prev_loss = flat_grad, loss
+        t = min(1.0, 1.0 / float(np.abs(flat_grad).sum())) if state["n_iter"] == 1 else 1.0
+        gtd = float(flat_grad @ d)
         if gtd > -tolerance_change:
             break
         loss, flat_grad, t, ls_func_evals = yield from _strong_wolfe(
             x, t, d, loss, flat_grad, gtd, max_ls=max_eval - current_evals)
-        x = x.add(d, alpha=t)
-        opt_cond = flat_grad.abs().max() <= tolerance_grad
+        x = x + t * d
+        opt_cond = np.abs(flat_grad).max() <= tolerance_grad
         current_evals += ls_func_evals
         if (n_iter == max_iter or current_evals >= max_eval or opt_cond
-                or d.mul(t).abs().max() <= tolerance_change
+                or np.abs(d * t).max() <= tolerance_change
                 or abs(loss - prev_loss) < tolerance_change):
             break
     state.update(d=d, t=t, prev_flat_grad=prev_flat_grad, prev_loss=prev_loss)
@@ -214,23 +220,31 @@ class Pairs:
 
     def __init__(self, size: int) -> None:
         self.size = size
-        self.s = self.y = torch.zeros(0, 0, dtype=torch.float64)
+        self.s = self.y = np.zeros((0, 0))
         self.sy = self.yy = np.zeros((0, 0))
         self.rho = np.zeros(0)
 
-    def add(self, s: torch.Tensor, y: torch.Tensor, rho: float) -> None:
-        s, y = s.detach().double(), y.detach().double()
+    def add(self, s: np.ndarray, y: np.ndarray, rho: float) -> None:
         keep = slice(1, None) if len(self.rho) == self.size else slice(None)
         if len(self.rho):
-            self.s, self.y = torch.cat([self.s[keep], s[None]]), torch.cat([self.y[keep], y[None]])
+            self.s = np.concatenate([self.s[keep], s[None]])
+            self.y = np.concatenate([self.y[keep], y[None]])
         else:
             self.s, self.y = s[None], y[None]
         self.rho = np.append(self.rho[keep], rho)
-        self.sy = _grown(self.sy[keep, keep], (self.s @ y).numpy(), (self.y @ s).numpy())
-        along = (self.y @ y).numpy()
+        steps, changes = torch.from_numpy(self.s), torch.from_numpy(self.y)
+        s, y = torch.from_numpy(s), torch.from_numpy(y)
+        self.sy = _grown(self.sy[keep, keep], (steps @ y).numpy(), (changes @ s).numpy())
+        along = (changes @ y).numpy()
         self.yy = _grown(self.yy[keep, keep], along, along)
+        m, r = len(self.rho), self.rho  # the triangular systems of direction()
+        self._first = np.triu(self.sy, 1) * r[:, None]
+        self._first[np.diag_indices(m)] = 1.0
+        self._second = np.tril(self.sy.T, -1) * r[:, None]
+        self._second[np.diag_indices(m)] = 1.0
+        self._pairs = torch.from_numpy(np.concatenate([self.s, self.y]))
 
-    def direction(self, grad: torch.Tensor, scale: float) -> torch.Tensor:
+    def direction(self, grad: np.ndarray, scale: float) -> np.ndarray:
         """-H grad for the inverse Hessian H of the pairs with H_0 = ``scale`` I: torch's
         two-loop recursion, whose 4m dot products and updates on the variables cost 150 us
         a step for m = 20, as two triangular systems of m unknowns in the inner products,
@@ -240,20 +254,16 @@ class Pairs:
         a_i + rho_i sum_{j>i} (s_i . y_j) a_j = -rho_i s_i . grad; the second's c_i = a_i
         - rho_i y_i . r_i, r_i = scale q_0 + sum_{j<i} c_j s_j, solves c_i + rho_i
         sum_{j<i} (y_i . s_j) c_j = a_i - rho_i scale y_i . q_0. The direction is r_m."""
-        g = grad.detach().double()
         if not len(self.rho):
-            return (g * -scale).to(grad.dtype)
-        m, r = len(self.rho), self.rho
-        first = np.triu(self.sy, 1) * r[:, None]
-        first[np.diag_indices(m)] = 1.0
-        a = solve_triangular(first, -r * (self.s @ g).numpy(), lower=False,
+            return grad * -scale
+        r, g = self.rho, torch.from_numpy(grad)
+        a = solve_triangular(self._first, -r * (torch.from_numpy(self.s) @ g).numpy(),
+                             lower=False, check_finite=False)
+        y_q = -(torch.from_numpy(self.y) @ g).numpy() - self.yy @ a
+        c = solve_triangular(self._second, a - r * scale * y_q, lower=True,
                              check_finite=False)
-        y_q = -(self.y @ g).numpy() - self.yy @ a
-        second = np.tril(self.sy.T, -1) * r[:, None]
-        second[np.diag_indices(m)] = 1.0
-        c = solve_triangular(second, a - r * scale * y_q, lower=True, check_finite=False)
-        mix = torch.from_numpy(np.concatenate([c, -scale * a]))
-        return (mix @ torch.cat([self.s, self.y]) - scale * g).to(grad.dtype)
+        return (torch.from_numpy(np.concatenate([c, -scale * a])) @ self._pairs).numpy() - (
+            scale * grad)
 
 
 def _grown(gram: np.ndarray, column: np.ndarray, row: np.ndarray) -> np.ndarray:
@@ -266,27 +276,44 @@ def _grown(gram: np.ndarray, column: np.ndarray, row: np.ndarray) -> np.ndarray:
     return out
 
 
+def _cubic_interpolate(x1: float, f1: float, g1: float, x2: float, f2: float, g2: float,
+                       bounds: tuple[float, float] | None = None) -> float:
+    """torch's ``_cubic_interpolate`` on floats: the minimiser of the cubic through two
+    points with their values and slopes, within ``bounds``."""
+    xmin_bound, xmax_bound = bounds if bounds is not None else (min(x1, x2), max(x1, x2))
+    d1 = g1 + g2 - 3 * (f1 - f2) / (x1 - x2)
+    d2_square = d1 ** 2 - g1 * g2
+    if d2_square < 0:
+        return (xmin_bound + xmax_bound) / 2.0
+    d2 = math.sqrt(d2_square)
+    if x1 <= x2:
+        min_pos = x2 - (x2 - x1) * ((g2 + d2 - d1) / (g2 - g1 + 2 * d2))
+    else:
+        min_pos = x1 - (x1 - x2) * ((g1 + d2 - d1) / (g1 - g2 + 2 * d2))
+    return min(max(min_pos, xmin_bound), xmax_bound)
+
+
 def _strong_wolfe(x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, max_ls=25):
-    """torch's ``_strong_wolfe``, asking for the points it evaluates instead of calling."""
+    """torch's ``_strong_wolfe``, asking for the points it evaluates instead of calling,
+    on float64 arrays and floats (no array is changed in place, so none is copied)."""
 
     def evaluate(step):
-        answer = yield x.add(d, alpha=step)
+        answer = yield x + step * d
         if answer is None:
             raise _Failed
         return answer
 
-    d_norm = d.abs().max()
-    g = g.clone(memory_format=torch.contiguous_format)
+    d_norm = np.abs(d).max()
     f_new, g_new = yield from evaluate(t)
     ls_func_evals = 1
-    gtd_new = g_new.dot(d)
+    gtd_new = float(g_new @ d)
     t_prev, f_prev, g_prev, gtd_prev = 0, f, g, gtd
     done = False
     ls_iter = 0
     while ls_iter < max_ls:
         if f_new > (f + c1 * t * gtd) or (ls_iter > 1 and f_new >= f_prev):
             bracket, bracket_f = [t_prev, t], [f_prev, f_new]
-            bracket_g = [g_prev, g_new.clone(memory_format=torch.contiguous_format)]
+            bracket_g = [g_prev, g_new]
             bracket_gtd = [gtd_prev, gtd_new]
             break
         if abs(gtd_new) <= -c2 * gtd:
@@ -295,7 +322,7 @@ def _strong_wolfe(x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, ma
             break
         if gtd_new >= 0:
             bracket, bracket_f = [t_prev, t], [f_prev, f_new]
-            bracket_g = [g_prev, g_new.clone(memory_format=torch.contiguous_format)]
+            bracket_g = [g_prev, g_new]
             bracket_gtd = [gtd_prev, gtd_new]
             break
         min_step = t + 0.01 * (t - t_prev)
@@ -304,11 +331,11 @@ def _strong_wolfe(x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, ma
         t = _cubic_interpolate(t_prev, f_prev, gtd_prev, t, f_new, gtd_new,
                                bounds=(min_step, max_step))
         t_prev, f_prev = tmp, f_new
-        g_prev = g_new.clone(memory_format=torch.contiguous_format)
+        g_prev = g_new
         gtd_prev = gtd_new
         f_new, g_new = yield from evaluate(t)
         ls_func_evals += 1
-        gtd_new = g_new.dot(d)
+        gtd_new = float(g_new @ d)
         ls_iter += 1
     if ls_iter == max_ls:
         bracket, bracket_f, bracket_g = [0, t], [f, f_new], [g, g_new]
@@ -333,12 +360,12 @@ def _strong_wolfe(x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, ma
             insuf_progress = False
         f_new, g_new = yield from evaluate(t)
         ls_func_evals += 1
-        gtd_new = g_new.dot(d)
+        gtd_new = float(g_new @ d)
         ls_iter += 1
         if f_new > (f + c1 * t * gtd) or f_new >= bracket_f[low_pos]:
             bracket[high_pos] = t
             bracket_f[high_pos] = f_new
-            bracket_g[high_pos] = g_new.clone(memory_format=torch.contiguous_format)
+            bracket_g[high_pos] = g_new
             bracket_gtd[high_pos] = gtd_new
             low_pos, high_pos = (0, 1) if bracket_f[0] <= bracket_f[1] else (1, 0)
         else:
@@ -351,7 +378,7 @@ def _strong_wolfe(x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, ma
                 bracket_gtd[high_pos] = bracket_gtd[low_pos]
             bracket[low_pos] = t
             bracket_f[low_pos] = f_new
-            bracket_g[low_pos] = g_new.clone(memory_format=torch.contiguous_format)
+            bracket_g[low_pos] = g_new
             bracket_gtd[low_pos] = gtd_new
     t = bracket[low_pos]
     f_new = bracket_f[low_pos]

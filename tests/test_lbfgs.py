@@ -105,9 +105,9 @@ def test_the_direction_is_the_two_loop_recursion_over_the_last_pairs():
         rho = [1 / float(y.dot(s)) for y, s in zip(changes, steps)]
         pairs = lbfgs.Pairs(20)
         for s, y, r in zip(steps, changes, rho):
-            pairs.add(s, y, r)
+            pairs.add(s.numpy(), y.numpy(), r)
         kept = slice(max(0, m - 20), m)
         grad = torch.randn(30, dtype=torch.float64)
         torch.testing.assert_close(
-            pairs.direction(grad, 0.7),
+            torch.from_numpy(pairs.direction(grad.numpy(), 0.7)),
             _two_loop(grad, steps[kept], changes[kept], rho[kept], 0.7))
