@@ -1050,19 +1050,21 @@ def test_scene_stages_that_throw_a_sunk_body_off_its_keypoints_are_undone(body):
 def test_rescale_scales_the_body_about_the_camera(body):
     """The rescale after a scale search refits shape and root to the scaled keypoints
     alone, without the mesh: the whole mesh must still come out scaled about the camera
-    centre (its projection kept), within a centimetre, seen by a tilted camera."""
+    centre (its projection kept), within a centimetre, seen by a tilted camera; refitted
+    exactly (by 10 % or more) or under the shape's expansion (5 %), within 4 mm."""
     cam2world = tilted_camera()
     params = _posed_params(body, cam2world)
     with torch.no_grad():
         before = body(params).vertices[0]
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
-    for scale in (0.9, 1.12):
+    for scale in (0.9, 0.95, 1.05, 1.12):
         scaled = {k: v.clone() for k, v in params.items()}
         fitter._rescale(scaled, torch.tensor([scale]), frames=1)
         with torch.no_grad():
             after = body(scaled).vertices[0]
         error = (after - scale * before).norm(dim=1)
-        assert float(error.mean()) < 0.01 and float(error.max()) < 0.03, (scale, error.max())
+        assert float(error.mean()) < (0.01 if abs(scale - 1) > 0.08 else 0.004), scale
+        assert float(error.max()) < 0.03, (scale, error.max())
         pixels = (CAMERA.project(after[None]) - CAMERA.project(before[None]))[0].norm(dim=1)
         assert float(pixels.mean()) < 3.0
 
