@@ -52,6 +52,11 @@ class SignedDistanceField:
         outside the box, the border value."""
         return self._read(points)
 
+    def seen_from(self, frame: torch.Tensor) -> Trilinear:
+        """Reads as :meth:`__call__`'s of points (..., 3) given in another frame, ``frame``
+        (4, 4) the rigid transform from theirs to the world."""
+        return Trilinear(self.grid, self.bmin, self.bmax, frame)
+
     @torch.no_grad()
     def normals(self, points: torch.Tensor) -> torch.Tensor:
         """Unit SDF gradients (outward surface normals) at world points (..., 3), by

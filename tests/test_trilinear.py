@@ -76,3 +76,27 @@ def test_threads_reading_at_once_each_get_their_own_reads():
     for reads, expected in zip(together, alone):
         for read in reads:
             assert torch.equal(read, expected)
+
+
+def test_reads_in_another_frame_are_the_worlds_at_the_moved_points():
+    """A reader given a tilted, turned, shifted frame reads at p what the world's reader
+    reads at R p + t, and its gradient is R^T times the world's (so an axis mix-up fails)."""
+    from scipy.spatial.transform import Rotation
+
+    torch.manual_seed(1)
+    grid = torch.randn(9, 6, 11)
+    bmin, bmax = torch.tensor([-1.0, -0.5, 0.2]), torch.tensor([1.5, 1.0, 2.0])
+    frame = torch.eye(4)
+    frame[:3, :3] = torch.tensor(Rotation.from_euler("xyz", [25, -40, 110], degrees=True)
+                                 .as_matrix(), dtype=torch.float32)
+    frame[:3, 3] = torch.tensor([0.3, 0.1, 1.2])
+    sdf = SignedDistanceField(grid, bmin, bmax)
+    world = bmin + torch.rand(300, 3) * (bmax - bmin)
+    local = ((world - frame[:3, 3]) @ frame[:3, :3]).requires_grad_()
+    moved = local @ frame[:3, :3].T + frame[:3, 3]
+    ours = sdf.seen_from(frame)(local)
+    theirs = sdf(moved)
+    torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-5)
+    (gradient,) = torch.autograd.grad(ours.sum(), local)
+    (expected,) = torch.autograd.grad(theirs.sum(), local)
+    torch.testing.assert_close(gradient, expected, rtol=1e-4, atol=1e-4)
