@@ -165,7 +165,7 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         def objective() -> Callable[[slice], torch.Tensor]:
             turned = rotation()  # once for the keypoints and the lean
             points = rotated(turned) + transl[:, None]
-            held = (torch.einsum("nk,nk->n", w_c, points[..., 2]) - depth) ** 2
+            held = ((w_c * points[..., 2]).sum(1) - depth) ** 2
             tilt = (turned @ model_up) @ up - tilt0
             loss = data(points, flat_w) + depth_weight * held + TILT_WEIGHT * tilt ** 2
             return lambda rows: loss[rows].sum()

@@ -216,4 +216,5 @@ class _Computed(torch.autograd.Function):
         (gradient,) = ctx.saved_tensors
         if gradient.dim() == 3:
             return grad[:, None, None] * gradient, None, None
-        return torch.einsum("bt,btkd->bkd", grad, gradient), None, None
+        mixed = grad[:, None].to(gradient.dtype) @ gradient.flatten(2)  # (B, 1, K * 3)
+        return mixed.view(gradient.shape[0], -1, 3), None, None

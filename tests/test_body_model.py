@@ -311,3 +311,32 @@ def test_skinning_is_annys(body, shared):
              for posed in (ours, theirs)]
     for mine, reference in zip(*grads):
         torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_anchored_points_are_the_torch_composition(body, shared):
+    """The anchored-points kernels against the torch gather, product, scatter-add and
+    gather they replace, on random (non-rigid) poses: the points, and the gradients of the
+    poses and anchors (one set of anchors for both bodies, or one each), hand heads and the
+    face's zeros included."""
+    generator = torch.Generator().manual_seed(7)
+    poses = torch.randn(2, len(body.skeleton.inverse), 4, 4, generator=generator)
+    anchors = torch.randn(1 if shared else 2, len(body.anchor_point), 3, generator=generator)
+    poses.requires_grad_(True)
+    anchors.requires_grad_(True)
+
+    def torch_points(poses, anchors):
+        held = poses[:, body.anchor_slot, :3]
+        moved = ((held[..., :3] @ anchors.expand(2, -1, -1)[..., None])[..., 0]
+                 + held[..., 3] * body.anchor_weight[:, None])
+        rows = len(body.keypoint_weights) + len(body.fingertips)
+        points = moved.new_zeros(2, rows, 3).index_add(1, body.anchor_point, moved)
+        return torch.cat([points, poses[:, body.hand_head_slot, :3, 3],
+                          points.new_zeros(2, 1, 3)], 1)[:, body.keypoint_source]
+
+    ours, theirs = body.anchored(poses, anchors), torch_points(poses, anchors)
+    assert torch.allclose(ours, theirs, atol=1e-5)
+    mix = torch.randn(ours.shape, generator=generator)
+    expected = torch.autograd.grad((theirs * mix).sum(), [poses, anchors])
+    for got, want in zip(torch.autograd.grad((ours * mix).sum(), [poses, anchors]), expected):
+        assert got.shape == want.shape and torch.allclose(got, want, atol=1e-4)

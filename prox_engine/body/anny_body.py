@@ -24,6 +24,7 @@ from torch.func import jacfwd
 from .. import assets
 from ..geometry import vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
+from .anchored_points import AnchoredPoints
 from .anny_kinematics import AnnySkeleton
 from .skinning import linear_blend_skinning
 from .base import BodyModel, BodyOutput, Params, VertexSubset
@@ -174,6 +175,9 @@ class AnnyBody(BodyModel):
         for name, bones in (("anchor_slot", self.anchor_bone), ("hand_head_slot", self.hand_heads),
                             ("sphere_slot", self.sphere_bone)):
             self.register_buffer(name, self.skeleton.inverse[bones])
+        self.anchored = AnchoredPoints(self.keypoint_source, self.anchor_point,
+                                       self.anchor_slot, self.anchor_weight, self.hand_head_slot,
+                                       len(self.keypoint_weights) + len(self.fingertips))
 
     @classmethod
     def load(cls, age_years: float = ADULT_AGE_YEARS) -> "AnnyBody":
@@ -605,15 +609,8 @@ class AnnyBody(BodyModel):
             transforms, _ = self.skeleton.transforms(poses, rest["bone_poses"])
             skinned = linear_blend_skinning(rest[subset], subset.data["weights"],
                                             subset.data["indices"], transforms)
-        held = poses[:, self.anchor_slot, :3]  # (B, pairs, 3, 4)
-        moved = ((held[..., :3] @ rest["local_anchors"].expand(batch, -1, -1)[..., None])[..., 0]
-                 + held[..., 3] * self.anchor_weight[:, None])
-        points = moved.new_zeros(batch, len(self.keypoint_weights) + len(self.fingertips),
-                                 3).index_add(1, self.anchor_point, moved)
-        keypoints = torch.cat([points, poses[:, self.hand_head_slot, :3, 3],
-                               points.new_zeros(batch, 1, 3)], 1)[:, self.keypoint_source]
-        centres = torch.einsum("bsij,sj->bsi", poses[:, self.sphere_slot, :3, :],
-                               self.sphere_local)
+        keypoints = self.anchored(poses, rest["local_anchors"])
+        centres = (poses[:, self.sphere_slot, :3, :] @ self.sphere_local[..., None])[..., 0]
         spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)
         return BodyOutput(vertices=skinned, keypoints=keypoints, spheres=spheres)
 
