@@ -214,35 +214,34 @@ def _step(x: np.ndarray, answer: tuple[float, np.ndarray], state: dict, max_iter
 class Pairs:
     """L-BFGS's last ``size`` pairs of steps s_i and gradient changes y_i (float64), with
     rho_i = 1 / (y_i . s_i) and the inner products s_i . y_j and y_i . y_j: a new pair's
-    against the others only, 3m products of the variables' length a step. The products
+    against the others only, one product of the variables' length a step. The products
     are torch's, which keeps to PROX_THREADS (numpy's BLAS would thread them); the m x m
     work is numpy's."""
 
     def __init__(self, size: int) -> None:
         self.size = size
-        self.s = self.y = np.zeros((0, 0))
+        self.pairs = np.zeros((0, 0))  # s_1..s_m, then y_1..y_m
         self.sy = self.yy = np.zeros((0, 0))
         self.rho = np.zeros(0)
 
     def add(self, s: np.ndarray, y: np.ndarray, rho: float) -> None:
-        keep = slice(1, None) if len(self.rho) == self.size else slice(None)
-        if len(self.rho):
-            self.s = np.concatenate([self.s[keep], s[None]])
-            self.y = np.concatenate([self.y[keep], y[None]])
-        else:
-            self.s, self.y = s[None], y[None]
+        m = len(self.rho)
+        keep = slice(1, None) if m == self.size else slice(None)
+        old = self.pairs if m else np.zeros((0, len(s)))
+        self.pairs = np.concatenate([old[:m][keep], s[None], old[m:][keep], y[None]])
         self.rho = np.append(self.rho[keep], rho)
-        steps, changes = torch.from_numpy(self.s), torch.from_numpy(self.y)
-        s, y = torch.from_numpy(s), torch.from_numpy(y)
-        self.sy = _grown(self.sy[keep, keep], (steps @ y).numpy(), (changes @ s).numpy())
-        along = (changes @ y).numpy()
+        m = len(self.rho)
+        # against [y, s]: the new pair's s_i . y and y_i . s, and its y_i . y
+        products = (torch.from_numpy(self.pairs) @ torch.from_numpy(np.stack([y, s], 1))
+                    ).numpy()
+        self.sy = _grown(self.sy[keep, keep], products[:m, 0], products[m:, 1])
+        along = products[m:, 0]
         self.yy = _grown(self.yy[keep, keep], along, along)
-        m, r = len(self.rho), self.rho  # the triangular systems of direction()
+        r = self.rho  # the triangular systems of direction()
         self._first = np.triu(self.sy, 1) * r[:, None]
         self._first[np.diag_indices(m)] = 1.0
         self._second = np.tril(self.sy.T, -1) * r[:, None]
         self._second[np.diag_indices(m)] = 1.0
-        self._pairs = torch.from_numpy(np.concatenate([self.s, self.y]))
 
     def direction(self, grad: np.ndarray, scale: float) -> np.ndarray:
         """-H grad for the inverse Hessian H of the pairs with H_0 = ``scale`` I: torch's
@@ -254,16 +253,17 @@ class Pairs:
         a_i + rho_i sum_{j>i} (s_i . y_j) a_j = -rho_i s_i . grad; the second's c_i = a_i
         - rho_i y_i . r_i, r_i = scale q_0 + sum_{j<i} c_j s_j, solves c_i + rho_i
         sum_{j<i} (y_i . s_j) c_j = a_i - rho_i scale y_i . q_0. The direction is r_m."""
-        if not len(self.rho):
+        m, r = len(self.rho), self.rho
+        if not m:
             return grad * -scale
-        r, g = self.rho, torch.from_numpy(grad)
-        a = solve_triangular(self._first, -r * (torch.from_numpy(self.s) @ g).numpy(),
-                             lower=False, check_finite=False)
-        y_q = -(torch.from_numpy(self.y) @ g).numpy() - self.yy @ a
+        pairs = torch.from_numpy(self.pairs)
+        along = (pairs @ torch.from_numpy(grad)).numpy()  # s_i . grad, then y_i . grad
+        a = solve_triangular(self._first, -r * along[:m], lower=False, check_finite=False)
+        y_q = -along[m:] - self.yy @ a
         c = solve_triangular(self._second, a - r * scale * y_q, lower=True,
                              check_finite=False)
-        return (torch.from_numpy(np.concatenate([c, -scale * a])) @ self._pairs).numpy() - (
-            scale * grad)
+        mix = torch.from_numpy(np.concatenate([c, -scale * a]))
+        return (mix @ pairs).numpy() - scale * grad
 
 
 def _grown(gram: np.ndarray, column: np.ndarray, row: np.ndarray) -> np.ndarray:
