@@ -292,17 +292,18 @@ def test_skinning_is_annys(body, shared):
     kernel, for a batch of bodies with rest vertices of their own or one set for all."""
     from anny.skinning import warp_skinning
 
-    from prox_engine.body.skinning import linear_blend_skinning
+    from prox_engine.body.skinning import Binding, linear_blend_skinning
 
     torch.manual_seed(6)
-    data = body._whole.data
+    data = {"template": body.model.template_vertices,
+            "weights": body.model.vertex_bone_weights, "indices": body.model.vertex_bone_indices}
     count = 1 if shared else 3
     rest = (data["template"] + 0.01 * torch.randn(count, *data["template"].shape))
     rest.requires_grad_(True)
     transforms = torch.eye(4).repeat(3, len(body.bone_labels), 1, 1)
     transforms[:, :, :3] += 0.2 * torch.randn(3, len(body.bone_labels), 3, 4)
     transforms.requires_grad_(True)
-    ours = linear_blend_skinning(rest, data["weights"], data["indices"], transforms)
+    ours = linear_blend_skinning(rest, Binding(data["weights"], data["indices"]), transforms)
     theirs = warp_skinning.linear_blend_skinning(rest.expand(3, -1, -1), data["weights"],
                                                  data["indices"], transforms)
     torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-5)

@@ -26,7 +26,7 @@ from ..geometry import vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 from .anchored_points import AnchoredPoints
 from .anny_kinematics import AnnySkeleton
-from .skinning import linear_blend_skinning
+from .skinning import Binding, linear_blend_skinning
 from .base import BodyModel, BodyOutput, Params, VertexSubset
 
 SIDES = ("L", "R")
@@ -163,10 +163,11 @@ class AnnyBody(BodyModel):
         self.register_buffer("keypoint_weights", weights[BODY])
         self._rest_cache: dict[str, torch.Tensor] | None = None
         self._expansion: dict | None = None  # see shape_expanded
-        # The whole mesh, posed as any other vertex subset is (model buffers, not copies).
+        # The whole mesh, posed as any other vertex subset is (model buffers, not copies;
+        # the skinning binding compacted once).
         self._whole = VertexSubset(torch.arange(len(model.template_vertices)), {
             "template": model.template_vertices, "blendshapes": model.blendshapes,
-            "weights": model.vertex_bone_weights, "indices": model.vertex_bone_indices})
+            "binding": Binding(model.vertex_bone_weights, model.vertex_bone_indices)})
         self._setup_phenotype_coefficients()
         self._setup_static_geometry()
         self._setup_rest_basis(*self._setup_keypoint_anchors())
@@ -593,8 +594,11 @@ class AnnyBody(BodyModel):
         gathered once: posing 7553 of the 13718 (the scene terms' vertices) takes 2.4 of
         a shape-free forward+backward's 9.6 ms less."""
         subset = super().vertex_subset(ids)
-        subset.data = {k: (v[:, subset.ids] if k == "blendshapes" else v[subset.ids])
-                       .contiguous() for k, v in self._whole.data.items()}
+        model, ids = self.model, subset.ids
+        subset.data = {"template": model.template_vertices[ids].contiguous(),
+                       "blendshapes": model.blendshapes[:, ids].contiguous(),
+                       "binding": Binding(model.vertex_bone_weights[ids],
+                                          model.vertex_bone_indices[ids])}
         return subset
 
     def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
@@ -607,8 +611,7 @@ class AnnyBody(BodyModel):
         skinned = None
         if subset is not None:
             transforms, _ = self.skeleton.transforms(poses, rest["bone_poses"])
-            skinned = linear_blend_skinning(rest[subset], subset.data["weights"],
-                                            subset.data["indices"], transforms)
+            skinned = linear_blend_skinning(rest[subset], subset.data["binding"], transforms)
         keypoints = self.anchored(poses, rest["local_anchors"])
         centres = (poses[:, self.sphere_slot, :3, :] @ self.sphere_local[..., None])[..., 0]
         spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)

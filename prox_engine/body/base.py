@@ -5,6 +5,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
@@ -27,7 +28,7 @@ class VertexSubset:
     those. ``data`` holds a model's own per-subset buffers."""
 
     ids: torch.Tensor
-    data: dict[str, torch.Tensor] = field(default_factory=dict)
+    data: dict[str, Any] = field(default_factory=dict)
 
 
 class BodyModel(ABC, torch.nn.Module):
