@@ -6,8 +6,9 @@ times its kernel's 5 us, and a fit launches its kernels about two thousand times
 A :class:`CpuKernel` records the launch once per thread and then only re-points the
 arguments that differ from last time's: a tensor's descriptor (``from_torch(...,
 return_ctype=True)``) is its data pointer, shape and strides, so a tensor at the same
-address with the same layout (a constant, or memory torch reused) keeps its own, and so
-does a value equal to the last. 16 us for the same call, 10 with the constants kept."""
+address with the same layout (a constant, or memory torch reused) keeps its own, one with
+the layout of the last only moves the descriptor's pointer, and a value equal to the last
+is kept. 16 us for the same call, 10 with the constants kept, 7 with the pointers moved."""
 from __future__ import annotations
 
 import math
@@ -46,10 +47,14 @@ class CpuKernel:
             command.set_dim(dim)
             recorded.dim = dim
         for i, (a, d, key) in enumerate(zip(args, self.dtypes, keys)):
-            if _same(key, recorded.keys[i]):
+            last = recorded.keys[i]
+            if _same(key, last):
                 continue
             if d is None:
                 command.set_param_at_index(i, a)
+            elif key[1:] == last[1:]:  # the same layout elsewhere: only the pointer moves
+                descriptor = command.params[i + 1]
+                descriptor.data, descriptor._ref = key[0], a
             else:
                 command.set_param_at_index_from_ctype(i, wp.from_torch(
                     a, dtype=d, requires_grad=False, return_ctype=True))
