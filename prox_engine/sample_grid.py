@@ -5,8 +5,9 @@ The exact distances of the penetration term and the scale search start from the 
 each point's k nearest surface samples. scipy's k-d tree took 0.7 ms for the 900 points
 a scene evaluation asks about (0.8 us each on a 300,000-sample room), some 60 ms a frame.
 Here each point scans the cells around its own, ring by ring, until its k-th nearest
-sample so far is nearer than any sample outside the rings can be; a point that needs more
-than a few rings (far from every surface) or lies outside the grid is left to the tree.
+sample so far is nearer than any sample outside the rings can be; a point with fewer than
+k samples within one ring (far from every surface), one that needs more than two rings,
+or one outside the grid is left to the tree (a third ring cost ten times what it saved).
 The answer is the tree's: the same samples in the same order (up to exact ties)."""
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from .warp_launch import CpuKernel
 MAX_K = 8
 CELL = 0.05  # m: 2.5 samples' spacings: a few samples a cell, most points done in one ring
 MAX_CELLS = 1 << 24  # a larger room gets larger cells (the grid holds an int32 per cell)
-RINGS = 3  # rings of cells scanned before a point is left to the tree
+RINGS = 2  # rings of cells around a point's own scanned before it is left to the tree
 
 _nearest_k = wp.types.vector(length=MAX_K, dtype=wp.float64)
 _index_k = wp.types.vector(length=MAX_K, dtype=wp.int32)
@@ -88,7 +89,7 @@ def _nearest(points: wp.array(dtype=wp.vec3d), samples: wp.array(dtype=wp.vec3d)
         gap = wp.min(wp.min(_face_gap(u[0], cx - r, cx + r, dims[0], cell),
                             _face_gap(u[1], cy - r, cy + r, dims[1], cell)),
                      _face_gap(u[2], cz - r, cz + r, dims[2], cell))
-        if index[k - 1] < 0:
+        if index[k - 1] < 0 and r > 0:
             return  # far from every surface: the tree is quicker
         if best[k - 1] <= gap * gap:
             for j in range(k):
