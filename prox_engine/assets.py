@@ -80,16 +80,30 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
             shutil.rmtree(build_dir, ignore_errors=True)
     import torch
 
+    import numpy as np
+
     from .body.anny_body import AnnyBody
+    from .camera import Camera
     from .geometry import VertexNormals
+    from .keypoint_terms import keypoint_data, plumb_shins, trunk_terms
     from .nearest_face import nearest_faces
+    from .sample_grid import SampleGrid
+    from .scene_sdf import surface_tree
     from .trilinear import Trilinear
 
-    say("compiling the warp kernels: skinning, bone chain, nearest face, SDF reads, normals "
-        "(cached after the first time) ...")
+    say("compiling the warp kernels: skinning, bone chain, keypoints and their terms, "
+        "nearest samples and faces, SDF reads, normals (cached after the first time) ...")
     body = AnnyBody.load()
     params = {k: v.requires_grad_(True) for k, v in body.init_params(1).items()}
-    body(params).vertices.sum().backward()  # skinning and bone chain, both ways
+    out = body(params)  # skinning, bone chain and anchored keypoints, both ways
+    up = torch.tensor([0.0, -1.0, 0.0])
+    (out.vertices.sum() + keypoint_data(out.keypoints, Camera(1.0, 1.0, 0.0, 0.0),
+                                        torch.zeros(1, out.keypoints.shape[1], 2),
+                                        torch.ones(1, out.keypoints.shape[1]), 1.0).sum()
+     + sum(trunk_terms(out.keypoints, up, 1.0, 1.0)).sum()
+     + plumb_shins(out.keypoints, up, torch.ones(1, 2, dtype=torch.bool)).sum()).backward()
+    samples = np.eye(3)
+    SampleGrid(samples, surface_tree(samples)).query(np.zeros((1, 3)), 1)
     triangle = torch.eye(3, dtype=torch.float64)[None]
     nearest_faces(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.int64),
                   triangle, triangle[:, 0])

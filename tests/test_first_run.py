@@ -26,6 +26,6 @@ def test_make_installs_the_cpu_torch_and_only_what_each_command_needs():
 def test_prox_setup_says_what_it_does_and_nothing_of_warp():
     run = subprocess.run([sys.executable, "-m", "prox_engine.cli", "setup"], cwd=ROOT,
                          capture_output=True, text=True, check=True, timeout=900)
-    assert "compiling the warp kernels: skinning, bone chain, nearest face" in run.stdout
+    assert "compiling the warp kernels: skinning, bone chain, keypoints" in run.stdout
     assert "anny model data:" in run.stdout
     assert "Warp" not in run.stdout + run.stderr
