@@ -13,6 +13,7 @@ import warp as wp
 from .camera import Camera
 from .keypoints import ANKLES, KNEES, MID_HIP, NECK
 from .warp_launch import CpuKernel
+from .with_gradient import with_gradient
 
 NEAREST_DEPTH = wp.constant(1e-3)  # m: nearer points project as if this deep, not pulled
 
@@ -147,7 +148,7 @@ def keypoint_data(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
                   weight.detach().float().contiguous(), wp.vec2(camera.fx, camera.fy),
                   wp.vec2(camera.cx, camera.cy), wp.vec3(k1, k2, k3), wp.vec2(p1, p2),
                   float(rho), value, gradient)
-    return _Computed.apply(keypoints, value, gradient)
+    return with_gradient(keypoints, value, gradient)
 
 
 def trunk_terms(keypoints: torch.Tensor, up: torch.Tensor, upright_rho: float,
@@ -170,7 +171,7 @@ def trunk_terms(keypoints: torch.Tensor, up: torch.Tensor, upright_rho: float,
     gradient = torch.zeros(len(points), 2, points.shape[1], 3)
     _TRUNK(len(points), points, _vector(up), NECK, MID_HIP, float(upright_rho),
            float(level_rho), value, gradient)
-    both = _Computed.apply(keypoints, value, gradient)
+    both = with_gradient(keypoints, value, gradient)
     return both[:, 0], both[:, 1]
 
 
@@ -190,7 +191,7 @@ def plumb_shins(keypoints: torch.Tensor, up: torch.Tensor, cut: torch.Tensor
     gradient = torch.zeros(points.shape)
     _PLUMB(len(points), points, _vector(up), NECK, MID_HIP, wp.vec2i(*KNEES), wp.vec2i(*ANKLES),
            cut.float().contiguous(), value, gradient)
-    return _Computed.apply(keypoints, value, gradient)
+    return with_gradient(keypoints, value, gradient)
 
 
 def _points(keypoints: torch.Tensor) -> torch.Tensor:
@@ -199,22 +200,3 @@ def _points(keypoints: torch.Tensor) -> torch.Tensor:
 
 def _vector(up: torch.Tensor) -> wp.vec3:
     return wp.vec3(*up.tolist())
-
-
-class _Computed(torch.autograd.Function):
-    """A term's ``value`` (B, ...) of ``keypoints`` (B, K, 3), differentiable through the
-    ``gradient`` (B, ..., K, 3) its kernel wrote with it."""
-
-    @staticmethod
-    def forward(ctx, keypoints: torch.Tensor, value: torch.Tensor, gradient: torch.Tensor
-                ) -> torch.Tensor:
-        ctx.save_for_backward(gradient)
-        return value.to(keypoints.dtype)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None, None]:
-        (gradient,) = ctx.saved_tensors
-        if gradient.dim() == 3:
-            return grad[:, None, None] * gradient, None, None
-        mixed = grad[:, None].to(gradient.dtype) @ gradient.flatten(2)  # (B, 1, K * 3)
-        return mixed.view(gradient.shape[0], -1, 3), None, None

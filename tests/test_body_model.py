@@ -341,3 +341,20 @@ def test_anchored_points_are_the_torch_composition(body, shared):
     expected = torch.autograd.grad((theirs * mix).sum(), [poses, anchors])
     for got, want in zip(torch.autograd.grad((ours * mix).sum(), [poses, anchors]), expected):
         assert got.shape == want.shape and torch.allclose(got, want, atol=1e-4)
+
+
+def test_joint_limits_and_their_gradient_are_the_squared_excess(body):
+    """The joint limits computed with their gradient equal the relu form autograd
+    differentiates, on poses inside, above and below the limits."""
+    from prox_engine.body.base import limit_excess
+
+    generator = torch.Generator().manual_seed(4)
+    pose = (torch.randn(3, *body.limit_lo.shape, generator=generator) * 1.5).requires_grad_()
+    ours = limit_excess(pose, body.limit_lo, body.limit_hi)
+    theirs = ((torch.relu(pose - body.limit_hi) + torch.relu(body.limit_lo - pose)) ** 2
+              ).sum((1, 2))
+    assert torch.equal(ours, theirs) and bool((ours > 0).all())
+    mix = torch.tensor([1.0, -2.0, 0.5])
+    (got,) = torch.autograd.grad((ours * mix).sum(), pose)
+    (want,) = torch.autograd.grad((theirs * mix).sum(), pose)
+    assert torch.allclose(got, want) and bool((got == 0).any())

@@ -27,7 +27,7 @@ from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 from .anchored_points import AnchoredPoints
 from .anny_kinematics import AnnySkeleton
 from .skinning import Binding, linear_blend_skinning
-from .base import BodyModel, BodyOutput, Params, VertexSubset
+from .base import BodyModel, BodyOutput, Params, VertexSubset, limit_excess
 
 SIDES = ("L", "R")
 SPINE = ["spine05", "spine04", "spine03", "spine02", "spine01"]
@@ -630,9 +630,7 @@ class AnnyBody(BodyModel):
         return (params["body_pose"] ** 2).sum((1, 2))
 
     def joint_limits(self, params: Params) -> torch.Tensor:
-        pose = params["body_pose"]
-        outside = torch.relu(pose - self.limit_hi) + torch.relu(self.limit_lo - pose)
-        return (outside ** 2).sum((1, 2))
+        return limit_excess(params["body_pose"], self.limit_lo, self.limit_hi)
 
     def bending_prior(self, params: Params) -> torch.Tensor:
         flexion = params["body_pose"][:, self.flexion_index, 0]

@@ -9,6 +9,8 @@ from typing import Any
 
 import torch
 
+from ..with_gradient import with_gradient
+
 Params = dict[str, torch.Tensor]
 
 
@@ -134,3 +136,11 @@ class BodyModel(ABC, torch.nn.Module):
     @property
     def num_vertices(self) -> int:
         return len(self.vertex_parts)
+
+
+def limit_excess(pose: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """(B,) squared excess of joint rotations ``pose`` (B, J, 3) beyond ``low``..``high``
+    (J, 3), summed (radians^2): a body model's joint limits, with their gradient."""
+    held = pose.detach()
+    over = held - held.clamp(low, high)
+    return with_gradient(pose, over.square().sum((1, 2)), 2 * over)

@@ -27,7 +27,7 @@ from ..config import GENDERS
 from ..errors import InputError
 from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from ..keypoints import BODY, FACE, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
-from .base import BodyModel, BodyOutput, Params, VertexSubset
+from .base import BodyModel, BodyOutput, Params, VertexSubset, limit_excess
 from .vposer import LATENT, VPoser
 
 JOINTS = [
@@ -439,9 +439,7 @@ class SMPLXBody(BodyModel):
         return (params["body_pose"] ** 2).sum((1, 2))
 
     def joint_limits(self, params: Params) -> torch.Tensor:
-        pose = self.body_pose(params)
-        outside = torch.relu(pose - self.limit_hi) + torch.relu(self.limit_lo - pose)
-        return (outside ** 2).sum((1, 2))
+        return limit_excess(self.body_pose(params), self.limit_lo, self.limit_hi)
 
     def bending_prior(self, params: Params) -> torch.Tensor:
         pose = self.body_pose(params)
