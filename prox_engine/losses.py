@@ -9,6 +9,7 @@ from .body.base import BodyModel, BodyOutput
 from .geometry import VertexNormals, grid_subsample, vertex_normals
 from .keypoints import BODY
 from .scene import Scene
+from .with_gradient import with_gradient
 
 
 def gmof(squared: torch.Tensor, rho: float) -> torch.Tensor:
@@ -48,11 +49,15 @@ def penetration_energy(points: torch.Tensor, scene: Scene,
     scene, each counted ``weights`` (N,) times (once by default), of d^2 (the paper's
     ||d n||^2) plus |d| (so that shallow penetrations still get a push), d being the depth
     beyond the tolerance: exact (from the triangles) within two voxels of a surface, where
-    furniture thinner than a voxel would otherwise be missed, else from the grid."""
-    depth = scene.penetration_depth(points, exact_band=2 * scene.sdf.voxel_size)
+    furniture thinner than a voxel would otherwise be missed, else from the grid. Worked
+    out with its gradient, without autograd (:func:`with_gradient`)."""
+    depth, slope = scene.penetration_depth(points, exact_band=2 * scene.sdf.voxel_size)
     depth = torch.relu(depth - tolerance)
     energy = depth ** 2 + depth
-    return (energy if weights is None else energy * weights).sum(-1)
+    push = 2 * depth + (depth > 0)  # d energy / d depth
+    if weights is not None:
+        energy, push = energy * weights, push * weights
+    return with_gradient(points, energy.sum(-1), push[..., None] * slope)
 
 
 # The contact parts of flesh a body rests on (a seated body's buttocks and thighs, a lying

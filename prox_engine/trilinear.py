@@ -92,22 +92,28 @@ class Trilinear:
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         return _Read.apply(points, self)
 
+    def read(self, points: torch.Tensor, slopes: bool = True
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Float32 reads (...) at ``points`` (..., 3) and, with ``slopes``, their
+        gradients in the points (..., 3) (else an empty tensor), without autograd."""
+        flat = points.detach().reshape(-1, 3).float().contiguous()
+        values = torch.empty(len(flat))
+        gradient = torch.empty((len(flat) if slopes else 0, 3))
+        _READ(len(flat), self.grid, flat, self.linear, self.offset, int(slopes), values,
+              gradient)
+        return (values.reshape(points.shape[:-1]),
+                gradient.reshape(*points.shape) if slopes else gradient)
+
 
 class _Read(torch.autograd.Function):
     @staticmethod
     def forward(ctx, points: torch.Tensor, reader: Trilinear) -> torch.Tensor:
-        flat = points.detach().reshape(-1, 3).float().contiguous()
-        slopes = ctx.needs_input_grad[0]
-        values = torch.empty(len(flat))
-        gradient = torch.empty((len(flat) if slopes else 0, 3))
-        _READ(len(flat), reader.grid, flat, reader.linear, reader.offset, int(slopes), values,
-              gradient)
+        values, gradient = reader.read(points, slopes=ctx.needs_input_grad[0])
         ctx.save_for_backward(gradient)
         ctx.dtype = points.dtype
-        return values.reshape(points.shape[:-1]).to(points.dtype)
+        return values.to(points.dtype)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, None]:
         (gradient,) = ctx.saved_tensors
-        out = grad.reshape(-1, 1).float() * gradient
-        return out.reshape(*grad.shape, 3).to(ctx.dtype), None
+        return (grad[..., None].float() * gradient).to(ctx.dtype), None

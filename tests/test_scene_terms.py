@@ -211,8 +211,17 @@ def test_penetration_depth_skips_the_exact_query_only_where_nothing_can_be_insid
     near = grid.abs() < 2 * voxel
     exact, _ = scene._triangle_distance(scene.to_world(camera))  # as the term reads them
     expected = torch.relu(-torch.where(near, exact.float(), grid))
-    depth = scene.penetration_depth(camera, exact_band=2 * voxel)
+    depth, slope = scene.penetration_depth(camera, exact_band=2 * voxel)
     assert torch.allclose(depth, expected, atol=1e-5)
+    # the slope is the gradient of the depth read as the term read it with autograd
+    points = camera.clone().requires_grad_(True)
+    values = scene.signed_distance(points)
+    exact_values, _ = scene._triangle_distance(scene.to_world(points[near]))
+    values = values.index_put((torch.nonzero(near).flatten(),), exact_values.float())
+    (expected_slope,) = torch.autograd.grad(torch.relu(-values).sum(), points)
+    reads = near & (grid < voxel)  # where the depth reads the triangles, and the grid
+    assert torch.allclose(slope[reads], expected_slope[reads], atol=1e-4)
+    assert torch.allclose(slope[~near], expected_slope[~near], atol=1e-4)
     assert (exact[near & (grid < 0)] < 0).any()  # the slab is read inside where it is
     skipped = near & (grid >= voxel)
     assert skipped.sum() > 0.2 * near.sum() and (exact[skipped] > 0).all()
