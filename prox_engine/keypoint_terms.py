@@ -195,6 +195,9 @@ def plumb_shins(keypoints: torch.Tensor, up: torch.Tensor, cut: torch.Tensor
 
 
 def _points(keypoints: torch.Tensor) -> torch.Tensor:
+    """The keypoints as the kernels read them (the kernels never write them: no detach)."""
+    if keypoints.dtype == torch.float32 and keypoints.is_contiguous():
+        return keypoints
     return keypoints.detach().float().contiguous()
 
 

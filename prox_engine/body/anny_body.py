@@ -24,10 +24,11 @@ from torch.func import jacfwd
 from .. import assets
 from ..geometry import vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
+from ..with_gradient import with_gradient
 from .anchored_points import AnchoredPoints
 from .anny_kinematics import AnnySkeleton
-from .skinning import Binding, linear_blend_skinning
 from .base import BodyModel, BodyOutput, Params, VertexSubset, limit_excess
+from .skinning import Binding, linear_blend_skinning
 
 SIDES = ("L", "R")
 SPINE = ["spine05", "spine04", "spine03", "spine02", "spine01"]
@@ -633,8 +634,11 @@ class AnnyBody(BodyModel):
         return limit_excess(params["body_pose"], self.limit_lo, self.limit_hi)
 
     def bending_prior(self, params: Params) -> torch.Tensor:
-        flexion = params["body_pose"][:, self.flexion_index, 0]
-        return torch.exp(-flexion).sum(1)
+        pose = params["body_pose"]
+        bent = torch.exp(-pose.detach()[:, self.flexion_index, 0])  # flexion < 0: backwards
+        gradient = torch.zeros_like(pose)
+        gradient[:, self.flexion_index, 0] = -bent
+        return with_gradient(pose, bent.sum(1), gradient)
 
     def hand_prior(self, params: Params) -> torch.Tensor:
         return (params["hand_pose"] ** 2).sum((1, 2))
