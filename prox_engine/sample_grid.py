@@ -126,6 +126,8 @@ class SampleGrid:
         """Distances and indices (N, k) of the ``k`` (at most :data:`MAX_K`) nearest
         samples of finite ``points`` (N, 3), nearest first, as ``cKDTree.query`` gives
         them (``workers``: the tree's threads for the points left to it)."""
+        if not 0 < k <= MAX_K:
+            raise ValueError(f"k = {k}: the grid finds 1 to {MAX_K} nearest samples")
         points = np.ascontiguousarray(points, dtype=np.float64)
         found = torch.zeros(len(points), k, dtype=torch.int64)
         squared = torch.zeros(len(points), k, dtype=torch.float64)

@@ -53,3 +53,9 @@ def test_a_large_room_gets_larger_cells(room, monkeypatch):
     assert grid.cell > sample_grid.CELL and int(np.prod(grid.dims)) <= 2 * 2000
     points = samples[::50] + 0.01
     assert np.array_equal(grid.query(points, 4)[1], grid.tree.query(points, k=4)[1])
+
+
+def test_more_neighbours_than_the_kernel_holds_are_refused(room):
+    _, grid = room
+    with pytest.raises(ValueError, match="1 to 8"):
+        grid.query(np.zeros((1, 3)), sample_grid.MAX_K + 1)
