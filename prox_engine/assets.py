@@ -78,9 +78,8 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
             os.replace(tmp, target)
         finally:
             shutil.rmtree(build_dir, ignore_errors=True)
-    import torch
-
     import numpy as np
+    import torch
 
     from .body.anny_body import AnnyBody
     from .camera import Camera

@@ -227,7 +227,8 @@ def test_forward_kinematics_are_annys(body, batch):
     theirs = body.model.get_bone_transforms(delta, rest["bone_poses"])
     rotvecs = torch.cat([leaves["global_orient"][:, None], leaves["body_pose"],
                          leaves["hand_pose"]], 1)
-    ours = body.skeleton(rotvecs, leaves["transl"], rest["bone_poses"], rest["offsets"])
+    ours = body.skeleton.transforms(body.skeleton.pose(rotvecs, leaves["transl"],
+                                                       rest["offsets"]), rest["bone_poses"])
     weights = [torch.randn_like(t) for t in theirs]
     grads = []
     for result in (theirs, ours):

@@ -70,8 +70,3 @@ class AnnySkeleton(torch.nn.Module):
         bottom = self.bottom.expand(batch, poses.shape[1], 1, 4)
         transforms = torch.cat([torch.cat([rotation, shift[..., None]], -1), bottom], -2)
         return transforms, poses
-
-    def forward(self, rotvecs: torch.Tensor, transl: torch.Tensor, rest_poses: torch.Tensor,
-                offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`transforms` of the :meth:`pose` of ``rotvecs`` and ``transl``."""
-        return self.transforms(self.pose(rotvecs, transl, offsets), rest_poses)
