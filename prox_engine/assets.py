@@ -86,12 +86,14 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     from .geometry import VertexNormals
     from .keypoint_terms import keypoint_data, plumb_shins, trunk_terms
     from .nearest_face import nearest_faces
+    from .rigid_terms import rigid_fit
     from .sample_grid import SampleGrid
     from .scene_sdf import surface_tree
     from .trilinear import Trilinear
 
-    say("compiling the warp kernels: skinning, bone chain, keypoints and their terms, "
-        "nearest samples and faces, SDF reads, normals (cached after the first time) ...")
+    say("compiling the warp kernels: skinning, bone chain, keypoints and their terms, the "
+        "start search's rigid fit, nearest samples and faces, SDF reads, normals (cached "
+        "after the first time) ...")
     body = AnnyBody.load()
     params = {k: v.requires_grad_(True) for k, v in body.init_params(1).items()}
     out = body(params)  # skinning, bone chain and anchored keypoints, both ways
@@ -101,6 +103,10 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
                                         torch.ones(1, out.keypoints.shape[1]), 1.0).sum()
      + sum(trunk_terms(out.keypoints, up, 1.0, 1.0)).sum()
      + plumb_shins(out.keypoints, up, torch.ones(1, 2, dtype=torch.bool)).sum()).backward()
+    one = torch.ones(1)
+    rigid_fit(torch.zeros(1, 3), torch.ones(1, 3), torch.eye(3)[None], torch.zeros(1, 1, 3),
+              Camera(1.0, 1.0, 0.0, 0.0), torch.zeros(1, 1, 2), one[None], one[None], one, one,
+              up, up, 1.0, 1.0, 1.0)
     samples = np.eye(3)
     SampleGrid(samples, surface_tree(samples)).query(np.zeros((1, 3)), 1)
     triangle = torch.eye(3, dtype=torch.float64)[None]

@@ -25,6 +25,7 @@ from .camera import Camera
 from .geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from .keypoint_terms import keypoint_data
 from .keypoints import BODY, TORSO_EDGES
+from .rigid_terms import rigid_fit
 
 TORSO = [1, 2, 5, 8, 9, 12]  # neck, shoulders, mid-hip, hips: nearly rigid in any posture
 LIMB_WEIGHT = 0.25  # the other body keypoints guide the rigid fit less than the torso
@@ -147,9 +148,6 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
     def rotated(turned: torch.Tensor) -> torch.Tensor:
         return kp @ turned.transpose(1, 2)
 
-    def data(points: torch.Tensor, weight: torch.Tensor, scale: float = rho) -> torch.Tensor:
-        return keypoint_data(points, camera, flat_target, weight, scale)
-
     # Two rounds: a candidate turns about world up (and leans a little) in the first, and
     # its similar-triangles depth follows its new orientation in the second. Each frame's
     # candidates are fitted on their own (lbfgs), so a frame starts alike in any batch.
@@ -163,11 +161,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
         transl.requires_grad_(True)
 
         def objective() -> Callable[[slice], torch.Tensor]:
-            turned = rotation()  # once for the keypoints and the lean
-            points = rotated(turned) + transl[:, None]
-            held = ((w_c * points[..., 2]).sum(1) - depth) ** 2
-            tilt = (turned @ model_up) @ up - tilt0
-            loss = data(points, flat_w) + depth_weight * held + TILT_WEIGHT * tilt ** 2
+            loss = rigid_fit(turn, transl, rot0, kp, camera, flat_target, flat_w, w_c, depth,
+                             tilt0, model_up, up, rho, depth_weight, TILT_WEIGHT)
             return lambda rows: loss[rows].sum()
 
         failed = lbfgs.minimise([turn, transl], objective, lbfgs.row_groups(batch * count, frames),
@@ -178,8 +173,8 @@ def best_start(body: BodyModel, camera: Camera, target: torch.Tensor, conf: torc
             events.append("initialise: non-finite values in the rigid fit, undone")
     with torch.no_grad():
         turned = rotation()
-        score = data(rotated(turned) + transl[:, None], flat_seen ** 2, SCORE_RHO).view(
-            batch, count)
+        score = keypoint_data(rotated(turned) + transl[:, None], camera, flat_target,
+                              flat_seen ** 2, SCORE_RHO).view(batch, count)
         score = score + facing_cost * _turned_away(turned @ body.forward_axis(), transl,
                                                    conf).view(batch, count)
         score = torch.nan_to_num(score, nan=math.inf).view(frames, views, count)

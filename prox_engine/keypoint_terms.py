@@ -26,47 +26,56 @@ def _robust(squared: float, rho: float) -> wp.vec2:
                    rho2 * rho2 / ((squared + rho2) * (squared + rho2)))
 
 
+@wp.func
+def reprojected(p: wp.vec3, target: wp.vec2, w: float, focal: wp.vec2, centre: wp.vec2,
+                radial: wp.vec3, tangential: wp.vec2, rho: float) -> wp.vec4:
+    """A camera-frame point's robust reprojection error, weighted by ``w``, and its
+    gradient in the point: (value, d/dx, d/dy, d/dz)."""
+    k1 = radial[0]
+    k2 = radial[1]
+    k3 = radial[2]
+    p1 = tangential[0]
+    p2 = tangential[1]
+    z = p[2]
+    deep = float(1.0)
+    if not (z > NEAREST_DEPTH) and z == z:  # not NaN: NaN passes through
+        z = NEAREST_DEPTH
+        deep = 0.0
+    x = p[0] / z
+    y = p[1] / z
+    r2 = x * x + y * y
+    scale = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+    dscale = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r2 * r2  # d scale / d r2
+    xd = x * scale + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * scale + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    eu = xd * focal[0] + centre[0] - target[0]
+    ev = yd * focal[1] + centre[1] - target[1]
+    robust = _robust(eu * eu + ev * ev, rho)
+    gu = 2.0 * w * robust[1] * eu * focal[0]  # d term / d xd, d yd
+    gv = 2.0 * w * robust[1] * ev * focal[1]
+    cross = 2.0 * x * y * dscale
+    gx = (gu * (scale + 2.0 * x * x * dscale + 2.0 * p1 * y + 6.0 * p2 * x)
+          + gv * (cross + 2.0 * p1 * x + 2.0 * p2 * y))
+    gy = (gu * (cross + 2.0 * p1 * x + 2.0 * p2 * y)
+          + gv * (scale + 2.0 * y * y * dscale + 6.0 * p1 * y + 2.0 * p2 * x))
+    return wp.vec4(w * robust[0], gx / z, gy / z, -deep * (gx * x + gy * y) / z)
+
+
 @wp.kernel
 def _reprojection(points: wp.array2d(dtype=wp.vec3), target: wp.array2d(dtype=wp.vec2),
                   weight: wp.array2d(dtype=wp.float32), focal: wp.vec2, centre: wp.vec2,
                   radial: wp.vec3, tangential: wp.vec2, rho: float,
                   value: wp.array(dtype=wp.float32), gradient: wp.array2d(dtype=wp.vec3)):
     b = wp.tid()
-    k1 = radial[0]
-    k2 = radial[1]
-    k3 = radial[2]
-    p1 = tangential[0]
-    p2 = tangential[1]
     total = float(0.0)
     for k in range(points.shape[1]):
         w = weight[b, k]
         slope = wp.vec3(0.0, 0.0, 0.0)
         if w != 0.0:
-            p = points[b, k]
-            z = p[2]
-            deep = float(1.0)
-            if not (z > NEAREST_DEPTH) and z == z:  # not NaN: NaN passes through
-                z = NEAREST_DEPTH
-                deep = 0.0
-            x = p[0] / z
-            y = p[1] / z
-            r2 = x * x + y * y
-            scale = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-            dscale = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r2 * r2  # d scale / d r2
-            xd = x * scale + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-            yd = y * scale + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-            eu = xd * focal[0] + centre[0] - target[b, k][0]
-            ev = yd * focal[1] + centre[1] - target[b, k][1]
-            robust = _robust(eu * eu + ev * ev, rho)
-            total += w * robust[0]
-            gu = 2.0 * w * robust[1] * eu * focal[0]  # d term / d xd, d yd
-            gv = 2.0 * w * robust[1] * ev * focal[1]
-            cross = 2.0 * x * y * dscale
-            gx = (gu * (scale + 2.0 * x * x * dscale + 2.0 * p1 * y + 6.0 * p2 * x)
-                  + gv * (cross + 2.0 * p1 * x + 2.0 * p2 * y))
-            gy = (gu * (cross + 2.0 * p1 * x + 2.0 * p2 * y)
-                  + gv * (scale + 2.0 * y * y * dscale + 6.0 * p1 * y + 2.0 * p2 * x))
-            slope = wp.vec3(gx / z, gy / z, -deep * (gx * x + gy * y) / z)
+            term = reprojected(points[b, k], target[b, k], w, focal, centre, radial,
+                               tangential, rho)
+            total += term[0]
+            slope = wp.vec3(term[1], term[2], term[3])
         gradient[b, k] = slope
     value[b] = total
 
@@ -141,14 +150,20 @@ def keypoint_data(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
     and ``target`` (B, K, 2). A keypoint of weight 0 adds nothing, even where it does not
     project (behind the camera with lens distortion, where the torch form read NaN)."""
     points = _points(keypoints)
-    k1, k2, p1, p2, k3 = (list(camera.k) + [0.0] * 5)[:5]
     value = torch.empty(len(points))
     gradient = torch.empty(points.shape)
     _REPROJECTION(len(points), points, target.detach().float().contiguous(),
-                  weight.detach().float().contiguous(), wp.vec2(camera.fx, camera.fy),
-                  wp.vec2(camera.cx, camera.cy), wp.vec3(k1, k2, k3), wp.vec2(p1, p2),
-                  float(rho), value, gradient)
+                  weight.detach().float().contiguous(), *lens(camera), float(rho), value,
+                  gradient)
     return with_gradient(keypoints, value, gradient)
+
+
+def lens(camera: Camera) -> tuple[wp.vec2, wp.vec2, wp.vec3, wp.vec2]:
+    """The camera as :func:`reprojected` reads it: focal lengths, principal point, radial
+    (k1, k2, k3) and tangential (p1, p2) distortion."""
+    k1, k2, p1, p2, k3 = (list(camera.k) + [0.0] * 5)[:5]
+    return (wp.vec2(camera.fx, camera.fy), wp.vec2(camera.cx, camera.cy), wp.vec3(k1, k2, k3),
+            wp.vec2(p1, p2))
 
 
 def trunk_terms(keypoints: torch.Tensor, up: torch.Tensor, upright_rho: float,
