@@ -84,6 +84,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     from .body.anny_body import AnnyBody
     from .camera import Camera
     from .geometry import VertexNormals
+    from .inside_depth import InsideDepth
     from .keypoint_terms import keypoint_data, plumb_shins, trunk_terms
     from .nearest_face import nearest_faces
     from .rigid_terms import rigid_fit
@@ -92,8 +93,8 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     from .trilinear import Trilinear
 
     say("compiling the warp kernels: skinning, bone chain, keypoints and their terms, the "
-        "start search's rigid fit, nearest samples and faces, SDF reads, normals (cached "
-        "after the first time) ...")
+        "start search's rigid fit, nearest samples and faces, SDF reads, depths inside, "
+        "normals (cached after the first time) ...")
     body = AnnyBody.load()
     params = {k: v.requires_grad_(True) for k, v in body.init_params(1).items()}
     out = body(params)  # skinning, bone chain and anchored keypoints, both ways
@@ -108,12 +109,15 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
               Camera(1.0, 1.0, 0.0, 0.0), torch.zeros(1, 1, 2), one[None], one[None], one, one,
               up, up, 1.0, 1.0, 1.0)
     samples = np.eye(3)
-    SampleGrid(samples, surface_tree(samples)).query(np.zeros((1, 3)), 1)
+    grid = SampleGrid(samples, surface_tree(samples))
+    grid.query(np.zeros((1, 3)), 1)
     triangle = torch.eye(3, dtype=torch.float64)[None]
     nearest_faces(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.int64),
                   triangle, triangle[:, 0])
-    Trilinear(torch.zeros(2, 2, 2), torch.zeros(3), torch.ones(3))(
-        torch.zeros(1, 3, requires_grad=True))
+    reader = Trilinear(torch.zeros(2, 2, 2), torch.zeros(3), torch.ones(3))
+    reader(torch.zeros(1, 3, requires_grad=True))
+    InsideDepth(reader, torch.eye(4), grid, torch.zeros(3, dtype=torch.int64), triangle,
+                triangle[:, 0], 1)(torch.zeros(1, 3), (-1.0, 1.0))
     VertexNormals(body.faces, torch.zeros(1, dtype=torch.long))(
         torch.zeros(1, body.num_vertices, 3))
     return target

@@ -54,27 +54,38 @@ def _closest(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.vec3d:
     return a + ab * (vb / denom) + ac * (vc / denom)
 
 
-@wp.kernel
-def _nearest(points: wp.array(dtype=wp.vec3d), candidates: wp.array2d(dtype=wp.int64),
-             corners: wp.array2d(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
-             areas: wp.array(dtype=wp.float64), vote: int,
-             closest: wp.array(dtype=wp.vec3d), sign: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    p = points[i]
-    k = candidates.shape[1]
+MAX_K = 8  # candidates a point may have
+_faces_k = wp.types.vector(length=MAX_K, dtype=wp.int64)
+_lengths_k = wp.types.vector(length=MAX_K, dtype=wp.float64)
+
+
+@wp.func
+def nearest_face(p: wp.vec3d, faces: _faces_k, k: int, corners: wp.array2d(dtype=wp.vec3d),
+                 normals: wp.array(dtype=wp.vec3d), areas: wp.array(dtype=wp.float64),
+                 vote: int) -> tuple[wp.vec3d, wp.float64]:
+    """The nearest point on the nearest of the first ``k`` candidate ``faces`` of ``p``,
+    and the sign of its side (see :func:`nearest_faces`)."""
+    lengths = _lengths_k()
     best = wp.float64(1e300)
+    xs = _lengths_k()  # the candidates' closest points, coordinate by coordinate
+    ys = _lengths_k()
+    zs = _lengths_k()
     for j in range(k):
-        f = candidates[i, j]
-        best = wp.min(best, wp.length(p - _closest(p, corners[f, 0], corners[f, 1],
-                                                   corners[f, 2])))
+        f = faces[j]
+        q = _closest(p, corners[f, 0], corners[f, 1], corners[f, 2])
+        xs[j] = q[0]
+        ys[j] = q[1]
+        zs[j] = q[2]
+        lengths[j] = wp.length(p - q)
+        best = wp.min(best, lengths[j])
     score = wp.float64(-2.0)
     chosen = wp.vec3d()
     plane_of_chosen = wp.float64(0.0)
     ballot = wp.float64(0.0)
     for j in range(k):
-        f = candidates[i, j]
-        q = _closest(p, corners[f, 0], corners[f, 1], corners[f, 2])
-        dist = wp.length(p - q)
+        f = faces[j]
+        q = wp.vec3d(xs[j], ys[j], zs[j])
+        dist = lengths[j]
         plane = wp.dot(p - q, normals[f])
         tied = wp.where(dist <= best + wp.float64(TIE), wp.abs(plane), wp.float64(-1.0))
         if tied > score:
@@ -84,8 +95,22 @@ def _nearest(points: wp.array(dtype=wp.vec3d), candidates: wp.array2d(dtype=wp.i
         if vote != 0:
             ballot += areas[f] * plane / wp.max(dist, wp.float64(1e-12))
     decided = wp.where(vote != 0, ballot, plane_of_chosen)
-    closest[i] = chosen
-    sign[i] = wp.where(decided < wp.float64(0.0), wp.float64(-1.0), wp.float64(1.0))
+    return chosen, wp.where(decided < wp.float64(0.0), wp.float64(-1.0), wp.float64(1.0))
+
+
+@wp.kernel
+def _nearest(points: wp.array(dtype=wp.vec3d), candidates: wp.array2d(dtype=wp.int64),
+             corners: wp.array2d(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
+             areas: wp.array(dtype=wp.float64), vote: int,
+             closest: wp.array(dtype=wp.vec3d), sign: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    faces = _faces_k()
+    k = candidates.shape[1]
+    for j in range(k):
+        faces[j] = candidates[i, j]
+    q, side = nearest_face(points[i], faces, k, corners, normals, areas, vote)
+    closest[i] = q
+    sign[i] = side
 
 
 _NEAREST = CpuKernel(_nearest, (wp.vec3d, wp.int64, wp.vec3d, wp.vec3d, wp.float64, None,
@@ -101,6 +126,8 @@ def nearest_faces(points: torch.Tensor, candidates: torch.Tensor, triangles: tor
     candidate's plane (of the candidates tied within TIE, the farthest plane) or, with face
     ``areas`` (F,), by every candidate's vote weighted by its area and by how squarely it
     faces the point; a point exactly on the plane is outside (+1)."""
+    if candidates.shape[1] > MAX_K:
+        raise ValueError(f"{candidates.shape[1]} candidates a point: at most {MAX_K}")
     n = len(points)
     closest = torch.empty((n, 3), dtype=torch.float64)
     sign = torch.empty(n, dtype=torch.float64)

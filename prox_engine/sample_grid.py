@@ -40,25 +40,24 @@ def _face_gap(position: wp.float64, low: int, high: int, count: int, cell: wp.fl
     return gap
 
 
-@wp.kernel
-def _nearest(points: wp.array(dtype=wp.vec3d), samples: wp.array(dtype=wp.vec3d),
-             starts: wp.array(dtype=wp.int32), origin: wp.vec3d, cell: wp.float64,
-             dims: wp.vec3i, k: int, rings: int, found: wp.array2d(dtype=wp.int64),
-             squared: wp.array2d(dtype=wp.float64), certain: wp.array(dtype=wp.int32)):
-    i = wp.tid()
-    p = points[i]
-    u = (p - origin) / cell
-    cx = int(wp.floor(u[0]))
-    cy = int(wp.floor(u[1]))
-    cz = int(wp.floor(u[2]))
-    certain[i] = 0
-    if cx < 0 or cy < 0 or cz < 0 or cx >= dims[0] or cy >= dims[1] or cz >= dims[2]:
-        return
+@wp.func
+def k_nearest(p: wp.vec3d, samples: wp.array(dtype=wp.vec3d), starts: wp.array(dtype=wp.int32),
+              origin: wp.vec3d, cell: wp.float64, dims: wp.vec3i, k: int, rings: int
+              ) -> tuple[_index_k, _nearest_k, int]:
+    """The first ``k`` slots of the grid order's indices and squared distances of the
+    samples nearest to ``p``, nearest first, and whether they are certain (1; else 0: the
+    point is left to the tree)."""
     best = _nearest_k()
     index = _index_k()
     for j in range(MAX_K):
         best[j] = wp.float64(1.0e300)
         index[j] = -1
+    u = (p - origin) / cell
+    cx = int(wp.floor(u[0]))
+    cy = int(wp.floor(u[1]))
+    cz = int(wp.floor(u[2]))
+    if cx < 0 or cy < 0 or cz < 0 or cx >= dims[0] or cy >= dims[1] or cz >= dims[2]:
+        return index, best, 0
     for r in range(rings + 1):
         for dx in range(-r, r + 1):
             x = cx + dx
@@ -90,13 +89,24 @@ def _nearest(points: wp.array(dtype=wp.vec3d), samples: wp.array(dtype=wp.vec3d)
                             _face_gap(u[1], cy - r, cy + r, dims[1], cell)),
                      _face_gap(u[2], cz - r, cz + r, dims[2], cell))
         if index[k - 1] < 0 and r > 0:
-            return  # far from every surface: the tree is quicker
+            return index, best, 0  # far from every surface: the tree is quicker
         if best[k - 1] <= gap * gap:
-            for j in range(k):
-                found[i, j] = wp.int64(index[j])
-                squared[i, j] = best[j]
-            certain[i] = 1
-            return
+            return index, best, 1
+    return index, best, 0
+
+
+@wp.kernel
+def _nearest(points: wp.array(dtype=wp.vec3d), samples: wp.array(dtype=wp.vec3d),
+             starts: wp.array(dtype=wp.int32), origin: wp.vec3d, cell: wp.float64,
+             dims: wp.vec3i, k: int, rings: int, found: wp.array2d(dtype=wp.int64),
+             squared: wp.array2d(dtype=wp.float64), certain: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    index, best, sure = k_nearest(points[i], samples, starts, origin, cell, dims, k, rings)
+    certain[i] = sure
+    if sure != 0:
+        for j in range(k):
+            found[i, j] = wp.int64(index[j])
+            squared[i, j] = best[j]
 
 
 _NEAREST = CpuKernel(_nearest, (wp.vec3d, wp.vec3d, wp.int32, None, None, None, None, None,

@@ -9,11 +9,15 @@ import numpy as np
 import torch
 
 from . import assets
+from .inside_depth import InsideDepth
 from .sample_grid import SampleGrid
 from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples, surface_tree,
                         triangle_signed_distance)
 
 
+# Surface samples whose faces are searched for a point's nearest triangle in the
+# penetration term (the statistics search 6, scene_sdf.triangle_signed_distance).
+EXACT_K = 4
 RAY_STEP = 0.01  # m between samples along a ray
 SURFACE = 0.006  # m: a ray sample this close to the scan has met a surface (> RAY_STEP / 2)
 RAY_MARGIN = 0.06  # m before a joint (its own flesh) and after the camera that do not count
@@ -36,6 +40,10 @@ class Scene:
         self._normals64 = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
         samples, self._sample_face = surface_samples(self.vertices, self.faces, sample_spacing)
         self._samples = SampleGrid(samples, surface_tree(samples))
+        self._inside_depth = InsideDepth(
+            self._camera_sdf, self.cam2world, self._samples,
+            torch.from_numpy(self._sample_face[self._samples.order]), tri, self._normals64,
+            EXACT_K)
 
     @classmethod
     def load(cls, vertices: np.ndarray, faces: np.ndarray, cam2world: np.ndarray,
@@ -77,21 +85,20 @@ class Scene:
         there halves the points queried. The two disagree only where a noisy scan edge
         flips the nearest face's sign (4 of 274,000 readings on seed 0's sofa, read 2-6 cm
         inside): there the grid's reading, outside, stands."""
-        grid, slope = self._camera_sdf.read(points_cam)
-        values, slopes = grid.reshape(-1), slope.reshape(-1, 3)
-        near = torch.nonzero((values > -exact_band) & (values < self.sdf.voxel_size)).flatten()
-        if len(near):
-            world = self.to_world(points_cam.reshape(-1, 3)[near]).double()
+        depth, slope, left = self._inside_depth(points_cam, (-exact_band, self.sdf.voxel_size))
+        left = torch.nonzero(left).flatten()
+        if len(left):  # points the sample grid left to the k-d tree
+            world = self.to_world(points_cam.reshape(-1, 3)[left]).double()
             exact, closest = self._triangle_distance(world)  # sign * distance (> 0)
             away = (world - closest) * (exact / exact.square())[:, None]  # sign * unit / d
-            values[near] = exact.float()
-            slopes[near] = away.float() @ self.cam2world[:3, :3]
-        inside = (values < 0)[:, None]
-        return torch.relu(-values).reshape(grid.shape), (-slopes * inside).reshape(slope.shape)
+            inside = (exact < 0)[:, None]
+            depth[left] = torch.relu(-exact.float())
+            slope[left] = -(away.float() @ self.cam2world[:3, :3]) * inside
+        return depth.reshape(points_cam.shape[:-1]), slope.reshape(points_cam.shape)
 
     def _triangle_distance(self, world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return triangle_signed_distance(world, self._samples, self._sample_face,
-                                        self._triangles64, self._normals64, k=4)
+                                        self._triangles64, self._normals64, k=EXACT_K)
 
     def sdf_normals(self, points_cam: torch.Tensor) -> torch.Tensor:
         """Outward scene normals (world frame, no gradient) at camera-frame points."""

@@ -18,21 +18,18 @@ import warp as wp
 from .warp_launch import CpuKernel
 
 
-@wp.kernel
-def _read(grid: wp.array3d(dtype=wp.float32), points: wp.array(dtype=wp.vec3),
-          linear: wp.mat33, offset: wp.vec3, slopes: int,
-          values: wp.array(dtype=wp.float32), gradient: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
+@wp.func
+def read_grid(grid: wp.array3d(dtype=wp.float32), linear: wp.mat33, offset: wp.vec3,
+              p: wp.vec3, slopes: int) -> tuple[float, wp.vec3]:
+    """The grid's trilinear reading at ``p`` (mapped to grid coordinates by ``linear`` p +
+    ``offset``) and, if ``slopes``, its gradient in ``p`` (else zero); NaN at NaN."""
     top = wp.vec3(float(grid.shape[0] - 1), float(grid.shape[1] - 1),
                   float(grid.shape[2] - 1))
-    u = linear * points[i] + offset  # grid coordinates
+    u = linear * p + offset  # grid coordinates
     inside = wp.vec3(1.0, 1.0, 1.0)  # the border clamps a coordinate, and its gradient
     for a in range(3):
         if u[a] != u[a]:  # not a number: no corner to read
-            values[i] = wp.nan
-            if slopes != 0:
-                gradient[i] = wp.vec3(0.0, 0.0, 0.0)
-            return
+            return wp.nan, wp.vec3(0.0, 0.0, 0.0)
         if u[a] <= 0.0:
             u[a] = 0.0
             inside[a] = 0.0
@@ -59,14 +56,26 @@ def _read(grid: wp.array3d(dtype=wp.float32), points: wp.array(dtype=wp.vec3),
     c11 = c110 + (c111 - c110) * fz
     c0 = c00 + (c01 - c00) * fy
     c1 = c10 + (c11 - c10) * fy
-    values[i] = c0 + (c1 - c0) * fx
+    gradient = wp.vec3(0.0, 0.0, 0.0)
     if slopes != 0:  # the blend's derivatives in the grid's coordinates, then the points'
         dx = c1 - c0
         dy = (c01 - c00) + ((c11 - c10) - (c01 - c00)) * fx
         dz0 = (c001 - c000) + ((c011 - c010) - (c001 - c000)) * fy
         dz1 = (c101 - c100) + ((c111 - c110) - (c101 - c100)) * fy
         dz = dz0 + (dz1 - dz0) * fx
-        gradient[i] = wp.transpose(linear) * wp.cw_mul(wp.vec3(dx, dy, dz), inside)
+        gradient = wp.transpose(linear) * wp.cw_mul(wp.vec3(dx, dy, dz), inside)
+    return c0 + (c1 - c0) * fx, gradient
+
+
+@wp.kernel
+def _read(grid: wp.array3d(dtype=wp.float32), points: wp.array(dtype=wp.vec3),
+          linear: wp.mat33, offset: wp.vec3, slopes: int,
+          values: wp.array(dtype=wp.float32), gradient: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    value, slope = read_grid(grid, linear, offset, points[i], slopes)
+    values[i] = value
+    if slopes != 0:
+        gradient[i] = slope
 
 
 _READ = CpuKernel(_read, (wp.float32, wp.vec3, None, None, None, wp.float32, wp.vec3))

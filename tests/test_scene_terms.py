@@ -227,6 +227,35 @@ def test_penetration_depth_skips_the_exact_query_only_where_nothing_can_be_insid
     assert skipped.sum() > 0.2 * near.sum() and (exact[skipped] > 0).all()
 
 
+def test_penetration_depth_of_points_the_sample_grid_leaves_to_the_tree():
+    """On a grid of 10 cm voxels over a tilted slab sampled every 5 cm, seen by a tilted,
+    off-centre camera, many points within the exact band have fewer than four samples
+    within one ring of cells: the kernel leaves them to the k-d tree, and every depth and
+    slope is the grid's or the nearest triangle's as the term reads them."""
+    from prox_engine.synthetic import look_at
+
+    slab = trimesh.creation.box(extents=(1.2, 0.8, 0.02))
+    slab.apply_transform(trimesh.transformations.rotation_matrix(0.4, [1.0, 0.3, 0.0]))
+    cam2world = look_at(np.array([0.7, -2.5, 1.3]), np.array([0.1, 0.2, 0.0]))
+    scene = _seen_scene(slab, cam2world, dim=24, spacing=0.05)
+    voxel = scene.sdf.voxel_size
+    world = torch.from_numpy(slab.sample(2000, seed=0)).float()
+    world = world + torch.randn(len(world), 3, generator=torch.Generator().manual_seed(0)) * voxel
+    camera = _in_camera(world, cam2world)
+    _, _, left = scene._inside_depth(camera, (-2 * voxel, voxel))
+    assert 0.05 * len(camera) < left.sum() < 0.95 * len(camera)
+    points = camera.clone().requires_grad_(True)
+    values = scene.signed_distance(points)
+    near = torch.nonzero((values > -2 * voxel) & (values < voxel)).flatten()
+    exact, _ = scene._triangle_distance(scene.to_world(points[near]).double())
+    values = values.index_put((near,), exact.float())
+    (expected_slope,) = torch.autograd.grad(torch.relu(-values).sum(), points)
+    depth, slope = scene.penetration_depth(camera, exact_band=2 * voxel)
+    assert torch.allclose(depth, torch.relu(-values.detach()), atol=1e-6)
+    assert torch.allclose(slope, expected_slope, atol=1e-4)
+    assert (depth[left] > 0).any() and (depth[~left] > 0).any()
+
+
 def test_nearest_hit_is_the_first_hit_of_the_nearest_ray():
     """Rays straight down from points over a floor and a 3 cm tabletop, seen by a tilted,
     off-centre camera: stepping a few samples at a time and stopping at the first that
