@@ -83,6 +83,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
 
     from .body.anny_body import AnnyBody
     from .camera import Camera
+    from .contact_distance import ContactDistance
     from .geometry import VertexNormals
     from .inside_depth import InsideDepth
     from .keypoint_terms import keypoint_data, plumb_shins, trunk_terms
@@ -94,7 +95,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
 
     say("compiling the warp kernels: skinning, bone chain, keypoints and their terms, the "
         "start search's rigid fit, nearest samples and faces, SDF reads, depths inside, "
-        "normals (cached after the first time) ...")
+        "contact distances, normals (cached after the first time) ...")
     body = AnnyBody.load()
     params = {k: v.requires_grad_(True) for k, v in body.init_params(1).items()}
     out = body(params)  # skinning, bone chain and anchored keypoints, both ways
@@ -118,6 +119,8 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     reader(torch.zeros(1, 3, requires_grad=True))
     InsideDepth(reader, torch.eye(4), grid, torch.zeros(3, dtype=torch.int64), triangle,
                 triangle[:, 0], 1)(torch.zeros(1, 3), (-1.0, 1.0))
+    ContactDistance(reader, reader, torch.eye(4), 0.1)(torch.zeros(1, 1, 3),
+                                                      torch.ones(1, 1, 3), 1.0, 0.0)
     VertexNormals(body.faces, torch.zeros(1, dtype=torch.long))(
         torch.zeros(1, body.num_vertices, 3))
     return target

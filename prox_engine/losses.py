@@ -91,22 +91,17 @@ def contact(out: BodyOutput, scene: Scene, normals: VertexNormals, rho: float,
 def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
                       max_angle_deg: float, max_distance: float,
                       sink: torch.Tensor | None = None
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Distance to contact of points (..., N, 3) with outward body normals, and which of
-    them qualify for contact (no gradient): within ``max_distance`` of it with the normal
-    facing the surface (within ``max_angle_deg`` of the opposite of the SDF gradient).
-    A point touches on the scene's surface (|SDF|), or ``sink`` (N,) metres inside it
-    (|SDF + sink|: flesh and cushions that give). The SDF makes this one grid lookup per
-    point instead of a nearest-triangle search, exact on planes and close to it
-    elsewhere."""
-    signed = scene.signed_distance(points)
-    dist = (signed if sink is None else signed + sink).abs()
-    valid = dist.detach() < max_distance
-    near = valid.nonzero(as_tuple=True)  # the facing test (six SDF lookups) only where near
-    facing = -(scene.world_normals(normals[near]) * scene.sdf_normals(points[near].detach())
-               ).sum(-1)
-    valid[near] = facing > math.cos(math.radians(max_angle_deg))
-    return dist, valid
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Distance to contact of points (..., N, 3) with outward body normals, which of them
+    qualify for contact, and the distance's gradient in the points (..., N, 3), without
+    autograd: within ``max_distance`` of it with the normal facing the surface (within
+    ``max_angle_deg`` of the opposite of the SDF gradient, by central differences over
+    half a voxel). A point touches on the scene's surface (|SDF|), or ``sink`` (N,) metres
+    inside it (|SDF + sink|: flesh and cushions that give). The SDF makes this one grid
+    lookup per point instead of a nearest-triangle search, exact on planes and close to it
+    elsewhere (:class:`contact_distance.ContactDistance`)."""
+    return scene.contact_distance(points, normals, max_distance,
+                                  math.cos(math.radians(max_angle_deg)), sink)
 
 
 def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rho: float,
@@ -114,10 +109,14 @@ def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rh
                    sink: torch.Tensor | None = None) -> torch.Tensor:
     """Robust distance to contact of the points (B, N, 3) that qualify for it
     (:func:`contact_distances`, touching ``sink`` deep), averaged over those points as in
-    PROX; 0 when none qualifies."""
-    dist, valid = contact_distances(points, normals, scene, max_angle_deg, max_distance, sink)
-    robust = gmof(dist ** 2, rho) / rho ** 2
-    return (robust * valid).sum(1) / valid.sum(1).clamp_min(1)
+    PROX; 0 when none qualifies. Worked out with its gradient (:func:`with_gradient`)."""
+    dist, valid, slope = contact_distances(points, normals, scene, max_angle_deg, max_distance,
+                                           sink)
+    count = valid.sum(1, keepdim=True).clamp_min(1)
+    squared = dist ** 2
+    energy = (gmof(squared, rho) / rho ** 2 * valid).sum(1) / count[:, 0]
+    push = valid * (2 * dist / (squared + rho ** 2) ** 2 * rho ** 2) / count  # d / d dist
+    return with_gradient(points, energy, push[..., None] * slope)
 
 
 def self_penetration(out: BodyOutput, body: BodyModel) -> torch.Tensor:

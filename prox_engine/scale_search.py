@@ -176,8 +176,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                     cost = cost + AXIS_WEIGHT * through.float().mean(1)
             if use_contact and contact_parts:
                 points = scales * vertices[b, every_part]
-                dist, near = contact_distances(points, normals[b, every_part].expand_as(points),
-                                               scene, max_angle_deg, max_distance)
+                dist, near, _ = contact_distances(
+                    points, normals[b, every_part].expand_as(points), scene, max_angle_deg,
+                    max_distance)
                 misses = [_miss(d, n, rho) for d, n in zip(dist.split(part_sizes, 1),
                                                             near.split(part_sizes, 1))]
                 cost = cost + torch.stack(misses).mean(0)
