@@ -28,6 +28,7 @@ from ..with_gradient import with_gradient
 from .anchored_points import AnchoredPoints
 from .anny_kinematics import AnnySkeleton
 from .base import BodyModel, BodyOutput, Params, VertexSubset, limit_excess
+from .shape_prior import PhenotypePrior
 from .skinning import Binding, linear_blend_skinning
 
 SIDES = ("L", "R")
@@ -147,7 +148,7 @@ class AnnyBody(BodyModel):
         self._setup_phenotype_table()
         # The starting shape is the prior's mean adult (genders alike): a starting body
         # taller than the mean person puts every monocular fit too far away.
-        alpha, beta, _, _ = self._phenotype_beta(age)
+        alpha, beta, _, _ = self.phenotype_prior.parameters(age.double().numpy())
         means = (alpha / (alpha + beta)).reshape(2, len(_PRIOR_COLUMNS)).mean(0)
         mean = [0.5, float(age), 0.5, 0.5, 0.5, 0.5]
         for column, value in zip(_PRIOR_COLUMNS.values(), means.tolist()):
@@ -651,33 +652,16 @@ class AnnyBody(BodyModel):
         dists = [getattr(self.shape_distribution, f"{who}_conditional_{name}_distribution")
                  for who in ("boys", "girls") for name in _PRIOR_COLUMNS]
         anchors = torch.unique(torch.cat([d.age_anchors for d in dists]))
-        self.register_buffer("prior_age_anchors", anchors)
         alpha, beta = zip(*(d.get_distribution_params(anchors) for d in dists))
-        self.register_buffer("prior_alpha", torch.stack(alpha, 1))  # (anchors, 8)
-        self.register_buffer("prior_beta", torch.stack(beta, 1))
-        self.register_buffer("prior_columns", torch.tensor(list(_PRIOR_COLUMNS.values())))
-        self.prior_age_range = (float(anchors[0]), float(anchors[-1]))
-
-    def _phenotype_beta(self, age: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Beta parameters a, b (B, 8) of the phenotype distributions at anny ages (B,),
-        piecewise linear between the table's anchors as anny interpolates them (clamped
-        to the anchors' range), and their slopes in age (0 outside that range)."""
-        anchors, alpha, beta = self.prior_age_anchors, self.prior_alpha, self.prior_beta
-        low, high = self.prior_age_range
-        held = age.clamp(low, high)
-        upper = torch.searchsorted(anchors, held.contiguous()).clamp(1, len(anchors) - 1)
-        width = anchors[upper] - anchors[upper - 1]
-        along = ((held - anchors[upper - 1]) / width)[:, None]
-        within = torch.where((age >= low) & (age <= high), 1 / width, 0.0)[:, None]
-        return ((1 - along) * alpha[upper - 1] + along * alpha[upper],
-                (1 - along) * beta[upper - 1] + along * beta[upper],
-                (alpha[upper] - alpha[upper - 1]) * within,
-                (beta[upper] - beta[upper - 1]) * within)
+        self.phenotype_prior = PhenotypePrior(anchors, torch.stack(alpha, 1),
+                                              torch.stack(beta, 1),
+                                              list(_PRIOR_COLUMNS.values()),
+                                              float(self.prior_age))
 
     def shape_prior(self, params: Params) -> torch.Tensor:
         """-log p(phenotype | adult age) under anny's calibrated Beta distributions, with
-        its gradient worked out alongside (:class:`_ShapePrior`)."""
-        return _ShapePrior.apply(params["shape"], self)
+        its gradient worked out alongside (:class:`PhenotypePrior`)."""
+        return self.phenotype_prior(params["shape"])
 
     # ----------------------------------------------------------------- export
     def export(self, params: Params, index: int) -> dict:
@@ -704,48 +688,3 @@ def _largest_component(faces: np.ndarray, count: int) -> np.ndarray:
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(count, count))
     _, labels = connected_components(graph, directed=False)
     return labels == np.bincount(labels).argmax()
-
-
-class _ShapePrior(torch.autograd.Function):
-    """anny's shape prior (B,) of shape logits (B, 6) and its gradient, in one pass without
-    autograd: about forty small operations whose recorded graph cost 0.4 ms forward and
-    back, an eighth of a scene-stage evaluation. With p = sigmoid(logits) (clamped to
-    [0.001, 0.999]), gender g = p_0 and age p_1, and the Beta parameters (a, b) of each
-    phenotype's boy and girl distributions piecewise linear in age between their anchors:
-
-        prior = ((age - adult) / 0.05)^2 / 2 - sum_sex share * log Beta(x; a, b),
-
-    share = 1 - g for the boys' and g for the girls', x the phenotype; d log Beta / dx =
-    (a - 1) / x - (b - 1) / (1 - x), d / da = log x + psi(a + b) - psi(a), d / db =
-    log(1 - x) + psi(a + b) - psi(b)."""
-
-    @staticmethod
-    def forward(ctx, shape: torch.Tensor, body: AnnyBody) -> torch.Tensor:
-        logistic = torch.sigmoid(shape.detach())
-        p = logistic.clamp(1e-3, 1 - 1e-3)
-        gender, age = p[:, 0:1], p[:, 1]
-        a, b, a_slope, b_slope = body._phenotype_beta(age)
-        x = p[:, body.prior_columns].repeat(1, 2)
-        log_x, log_rest = torch.log(x), torch.log1p(-x)
-        log_prob = ((a - 1) * log_x + (b - 1) * log_rest + torch.lgamma(a + b)
-                    - torch.lgamma(a) - torch.lgamma(b))
-        half = len(_PRIOR_COLUMNS)
-        share = torch.cat([(1 - gender).expand(-1, half), gender.expand(-1, half)], 1)
-        value = ((age - body.prior_age) / 0.05) ** 2 / 2 - (share * log_prob).sum(1)
-        both = torch.digamma(a + b)
-        by_age = ((log_x + both - torch.digamma(a)) * a_slope
-                  + (log_rest + both - torch.digamma(b)) * b_slope)
-        by_x = -share * ((a - 1) / x - (b - 1) / (1 - x))
-        gradient = torch.zeros_like(p)
-        gradient[:, body.prior_columns] = by_x[:, :half] + by_x[:, half:]
-        gradient[:, 0] = (log_prob[:, :half] - log_prob[:, half:]).sum(1)
-        gradient[:, 1] = ((age - body.prior_age) / 0.05 ** 2
-                          - (share * by_age).sum(1))
-        clamped = (logistic < 1e-3) | (logistic > 1 - 1e-3)
-        ctx.save_for_backward(gradient * logistic * (1 - logistic) * ~clamped)
-        return value
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
-        (gradient,) = ctx.saved_tensors
-        return grad[:, None] * gradient, None
