@@ -15,7 +15,7 @@ import warp as wp
 
 from .nearest_face import _faces_k, nearest_face
 from .sample_grid import MAX_K, RINGS, SampleGrid, k_nearest
-from .trilinear import Trilinear, read_grid
+from .trilinear import Trilinear, blend_reach, read_grid
 from .warp_launch import CpuKernel
 
 
@@ -32,7 +32,8 @@ def _inside(points: wp.array(dtype=wp.vec3), grid: wp.array3d(dtype=wp.float32),
     p = points[i]
     value, gradient = read_grid(grid, linear, offset, p, 1)
     left[i] = 0
-    if value > low and value < high:
+    if value > low and (value < 0.0 or value < wp.min(high, blend_reach(grid, linear, offset,
+                                                                          p))):
         world = wp.vec3d(rotation * p + shift)
         sure = int(0)
         if wp.isfinite(world):

@@ -76,18 +76,20 @@ class Scene:
                           ) -> tuple[torch.Tensor, torch.Tensor]:
         """How deep (>= 0) camera-frame points (..., 3) are inside the scene, and the
         depth's gradient in the points (..., 3): from the SDF grid, and, for points the
-        grid puts less than ``exact_band`` inside a surface or less than a voxel outside
-        it, from the nearest triangles themselves, which resolves furniture thinner than a
-        voxel (the gradient of such a distance is the unit vector from the nearest
-        surface point to the point, signed).
+        grid puts less than ``exact_band`` inside a surface or outside it by less than
+        could still be inside, from the nearest triangles themselves, which resolves
+        furniture thinner than a voxel (the gradient of such a distance is the unit vector
+        from the nearest surface point to the point, signed; :mod:`inside_depth`).
 
         Farther outside no point can be inside: the grid's corners hold exact distances
         near surfaces, which change by at most the distance moved, so at a point inside
         every corner of its cell reads less than its distance from the point, and the
-        trilinear blend of those is under sqrt(3) / 2 of a voxel. Skipping the exact query
-        there halves the points queried. The two disagree only where a noisy scan edge
-        flips the nearest face's sign (4 of 274,000 readings on seed 0's sofa, read 2-6 cm
-        inside): there the grid's reading, outside, stands."""
+        trilinear blend of those less than the blend of those distances
+        (:func:`trilinear.blend_reach`, under sqrt(3) / 2 of a voxel; a voxel at most).
+        Skipping the exact query there leaves two fifths of the points within a voxel
+        outside to query (a speed seed's scene stages). The two disagree only where a noisy scan edge flips the nearest face's
+        sign (4 of 274,000 readings on seed 0's sofa, read 2-6 cm inside): there the grid's
+        reading, outside, stands."""
         depth, slope, left = self._inside_depth(points_cam, (-exact_band, self.sdf.voxel_size))
         left = torch.nonzero(left).flatten()
         if len(left):  # points the sample grid left to the k-d tree

@@ -67,6 +67,35 @@ def read_grid(grid: wp.array3d(dtype=wp.float32), linear: wp.mat33, offset: wp.v
     return c0 + (c1 - c0) * fx, gradient
 
 
+@wp.func
+def blend_reach(grid: wp.array3d(dtype=wp.float32), linear: wp.mat33, offset: wp.vec3,
+                p: wp.vec3) -> float:
+    """How much more than the distance function itself :func:`read_grid` can read at ``p``
+    from a grid of exact distances: the blend's weighted mean distance (m) from ``p`` to
+    the eight corners it reads (a 1-Lipschitz function's corner values exceed its value at
+    ``p`` by at most their distances); infinite where the border clamps a coordinate."""
+    u = linear * p + offset
+    spacing = wp.vec3(0.0, 0.0, 0.0)
+    for a in range(3):
+        if not (u[a] > 0.0 and u[a] < float(grid.shape[a] - 1)):
+            return wp.inf
+        spacing[a] = 1.0 / wp.length(wp.vec3(linear[a, 0], linear[a, 1], linear[a, 2]))
+    f = u - wp.vec3(wp.floor(u[0]), wp.floor(u[1]), wp.floor(u[2]))
+    reach = float(0.0)
+    for corner in range(8):
+        weight = float(1.0)
+        gap = wp.vec3(0.0, 0.0, 0.0)
+        for a in range(3):
+            if (corner >> a) & 1 == 1:
+                weight *= f[a]
+                gap[a] = (1.0 - f[a]) * spacing[a]
+            else:
+                weight *= 1.0 - f[a]
+                gap[a] = f[a] * spacing[a]
+        reach += weight * wp.length(gap)
+    return reach
+
+
 @wp.kernel
 def _read(grid: wp.array3d(dtype=wp.float32), points: wp.array(dtype=wp.vec3),
           linear: wp.mat33, offset: wp.vec3, slopes: int,
