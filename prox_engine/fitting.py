@@ -652,10 +652,11 @@ class Fitter:
         of rows) settles; returns the terms at the accepted points (not at the line
         search's last probes)."""
         mesh = self._mesh_read(stage)
+        spheres = stage.weights.get("self_penetration", 0) > 0
         terms_of = self._terms(stage, params, target, conf, depth, previous, free)
 
         def terms() -> dict[str, torch.Tensor]:
-            return terms_of(self.body(params, vertices=mesh))
+            return terms_of(self.body(params, vertices=mesh, spheres=spheres))
 
         def objective() -> Callable[[slice], torch.Tensor]:
             # the terms summed once for every row, then per group: each operation on the
@@ -780,7 +781,7 @@ class Fitter:
                 params["transl"][rows] *= scale[rows, None]
 
         def objective() -> Callable[[slice], torch.Tensor]:
-            keypoints = body(params, vertices=False).keypoints[:, defined]
+            keypoints = body(params, vertices=False, spheres=False).keypoints[:, defined]
             squared = ((keypoints - goal) ** 2).sum(-1)
             return lambda rows: squared[rows].mean() * 1e4
 

@@ -603,7 +603,8 @@ class AnnyBody(BodyModel):
                                           model.vertex_bone_indices[ids])}
         return subset
 
-    def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
+    def forward(self, params: Params, vertices: bool | VertexSubset = True,
+                spheres: bool = True) -> BodyOutput:
         subset = self._subset(vertices)
         rest = self._rest(params["shape"], subset)
         rotvecs = torch.cat([params["global_orient"][:, None], params["body_pose"],
@@ -615,9 +616,11 @@ class AnnyBody(BodyModel):
             transforms, _ = self.skeleton.transforms(poses, rest["bone_poses"])
             skinned = linear_blend_skinning(rest[subset], subset.data["binding"], transforms)
         keypoints = self.anchored(poses, rest["local_anchors"])
+        if not spheres:
+            return BodyOutput(vertices=skinned, keypoints=keypoints)
         centres = (poses[:, self.sphere_slot, :3, :] @ self.sphere_local[..., None])[..., 0]
-        spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)
-        return BodyOutput(vertices=skinned, keypoints=keypoints, spheres=spheres)
+        return BodyOutput(vertices=skinned, keypoints=keypoints, spheres=torch.cat(
+            [centres, self.sphere_radius.expand(batch, -1)[..., None]], -1))
 
     @property
     def keypoint_mask(self) -> torch.Tensor:

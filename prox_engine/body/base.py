@@ -53,10 +53,13 @@ class BodyModel(ABC, torch.nn.Module):
         """Parameters of a mean-shaped body at the origin in one of ``postures``."""
 
     @abstractmethod
-    def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
+    def forward(self, params: Params, vertices: bool | VertexSubset = True,
+                spheres: bool = True) -> BodyOutput:
         """Pose the body. Without ``vertices`` a model may skip the mesh (keypoints and
         spheres only), which is what most fitting stages need; with a
-        :class:`VertexSubset` the output's vertices are those of the subset, in its order."""
+        :class:`VertexSubset` the output's vertices are those of the subset, in its order.
+        Without ``spheres`` the output has none (only self-penetration and the scale
+        search's axes read them)."""
 
     @contextmanager
     def shape_expanded(self, params: Params, vertices: bool | VertexSubset

@@ -382,7 +382,8 @@ class SMPLXBody(BodyModel):
         return (self._hand_offsets(params["hand_pose"]) + self.hand_mean).reshape(-1, 30, 3)
 
     # ----------------------------------------------------------------- forward
-    def forward(self, params: Params, vertices: bool | VertexSubset = True) -> BodyOutput:
+    def forward(self, params: Params, vertices: bool | VertexSubset = True,
+                spheres: bool = True) -> BodyOutput:
         """Pose the body; the keypoints need the mesh (face landmarks), so it is always
         posed (a subset is picked from it)."""
         subset = vertices.ids if isinstance(vertices, VertexSubset) else None
@@ -421,12 +422,15 @@ class SMPLXBody(BodyModel):
         keypoints[:, RIGHT_HAND] = points[:, RIGHT_HAND_21]
         triangles = vertices[:, self.landmark_faces]  # (B, 51, 3, 3)
         keypoints[:, FACE] = torch.einsum("blkd,lk->bld", triangles, self.landmark_bary)
-        carry = skinning[:, self.sphere_joint]
-        centres = torch.einsum("bsxy,sy->bsx", carry[..., :3, :3], self.sphere_rest) \
-            + carry[..., :3, 3] + transl
-        spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]], -1)
-        return BodyOutput(vertices=vertices if subset is None else vertices[:, subset],
-                          keypoints=keypoints, spheres=spheres)
+        out = BodyOutput(vertices=vertices if subset is None else vertices[:, subset],
+                         keypoints=keypoints)
+        if spheres:
+            carry = skinning[:, self.sphere_joint]
+            centres = torch.einsum("bsxy,sy->bsx", carry[..., :3, :3], self.sphere_rest) \
+                + carry[..., :3, 3] + transl
+            out.spheres = torch.cat([centres, self.sphere_radius.expand(batch, -1)[..., None]],
+                                    -1)
+        return out
 
     @property
     def keypoint_mask(self) -> torch.Tensor:
