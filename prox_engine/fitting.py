@@ -614,21 +614,19 @@ class Fitter:
                      in priors.items() if not set(reads) & set(free)}
 
         def terms(out: BodyOutput) -> dict[str, torch.Tensor]:
-            values = {"data": keypoint_terms.keypoint_data(out.keypoints, self.camera, target,
-                                                           weights, cfg.data_rho),
+            data, standing, lying, plumb = keypoint_terms.posed_terms(
+                out.keypoints, self.camera, target, weights, cfg.data_rho, self.up,
+                cfg.upright_rho, cfg.level_rho, cut)  # one kernel for the four
+            values = {"data": data,
                       "joint_limits": cfg.joint_limit_weight * body.joint_limits(params)}
             for name, (weight, prior, _) in priors.items():
                 values[name] = fixed[name] if name in fixed else weight * prior(params)
-            if cfg.upright_weight > 0 or cfg.level_weight > 0:  # one kernel for both
-                standing, lying = keypoint_terms.trunk_terms(out.keypoints, self.up,
-                                                             cfg.upright_rho, cfg.level_rho)
-                if cfg.upright_weight > 0:
-                    values["upright"] = upright * standing
-                if cfg.level_weight > 0:
-                    values["level"] = cfg.level_weight * lying
+            if cfg.upright_weight > 0:
+                values["upright"] = upright * standing
+            if cfg.level_weight > 0:
+                values["level"] = cfg.level_weight * lying
             if cfg.plumb_shin_weight > 0:
-                values["plumb_shins"] = cfg.plumb_shin_weight * keypoint_terms.plumb_shins(
-                    out.keypoints, self.up, cut)
+                values["plumb_shins"] = cfg.plumb_shin_weight * plumb
             if w.get("self_penetration", 0) > 0:
                 values["self_penetration"] = (w["self_penetration"]
                                               * losses.self_penetration(out, body))

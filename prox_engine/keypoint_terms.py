@@ -61,12 +61,12 @@ def reprojected(p: wp.vec3, target: wp.vec2, w: float, focal: wp.vec2, centre: w
     return wp.vec4(w * robust[0], gx / z, gy / z, -deep * (gx * x + gy * y) / z)
 
 
-@wp.kernel
-def _reprojection(points: wp.array2d(dtype=wp.vec3), target: wp.array2d(dtype=wp.vec2),
-                  weight: wp.array2d(dtype=wp.float32), focal: wp.vec2, centre: wp.vec2,
-                  radial: wp.vec3, tangential: wp.vec2, rho: float,
-                  value: wp.array(dtype=wp.float32), gradient: wp.array2d(dtype=wp.vec3)):
-    b = wp.tid()
+@wp.func
+def _data_row(points: wp.array2d(dtype=wp.vec3), target: wp.array2d(dtype=wp.vec2),
+              weight: wp.array2d(dtype=wp.float32), focal: wp.vec2, centre: wp.vec2,
+              radial: wp.vec3, tangential: wp.vec2, rho: float, b: int, column: int,
+              value: wp.array2d(dtype=wp.float32), gradient: wp.array3d(dtype=wp.vec3)):
+    """Row ``b``'s weighted robust reprojection error and its gradient, in ``column``."""
     total = float(0.0)
     for k in range(points.shape[1]):
         w = weight[b, k]
@@ -76,15 +76,16 @@ def _reprojection(points: wp.array2d(dtype=wp.vec3), target: wp.array2d(dtype=wp
                                tangential, rho)
             total += term[0]
             slope = wp.vec3(term[1], term[2], term[3])
-        gradient[b, k] = slope
-    value[b] = total
+        gradient[b, column, k] = slope
+    value[b, column] = total
 
 
-@wp.kernel
-def _trunk(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: int,
-           upright_rho: float, level_rho: float, value: wp.array2d(dtype=wp.float32),
-           gradient: wp.array3d(dtype=wp.vec3)):
-    b = wp.tid()
+@wp.func
+def _trunk_row(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: int,
+               upright_rho: float, level_rho: float, b: int, column: int,
+               value: wp.array2d(dtype=wp.float32), gradient: wp.array3d(dtype=wp.vec3)):
+    """Row ``b``'s upright and level terms and their gradients, in ``column`` and the next
+    (see :func:`trunk_terms`)."""
     trunk = points[b, neck] - points[b, mid_hip]
     along = wp.dot(trunk, up)
     normal = wp.cross(trunk, up)
@@ -96,9 +97,9 @@ def _trunk(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: i
         turn = along * wp.cross(up, normal) / across
     slope = (turn - across * up) / wp.dot(trunk, trunk)
     robust = _robust(angle * angle, upright_rho)
-    value[b, 0] = robust[0]
-    gradient[b, 0, neck] = 2.0 * angle * robust[1] * slope
-    gradient[b, 0, mid_hip] = -2.0 * angle * robust[1] * slope
+    value[b, column] = robust[0]
+    gradient[b, column, neck] = 2.0 * angle * robust[1] * slope
+    gradient[b, column, mid_hip] = -2.0 * angle * robust[1] * slope
     # level: -rho^2 (1 - q)^2, q = ((angle - pi/2) / rho)^2 clamped at 1
     off = angle - 0.5 * wp.pi
     q = off * off / (level_rho * level_rho)
@@ -107,16 +108,18 @@ def _trunk(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: i
         lying = 4.0 * (1.0 - q) * off
     else:
         q = 1.0
-    value[b, 1] = -level_rho * level_rho * (1.0 - q) * (1.0 - q)
-    gradient[b, 1, neck] = lying * slope
-    gradient[b, 1, mid_hip] = -lying * slope
+    value[b, column + 1] = -level_rho * level_rho * (1.0 - q) * (1.0 - q)
+    gradient[b, column + 1, neck] = lying * slope
+    gradient[b, column + 1, mid_hip] = -lying * slope
 
 
-@wp.kernel
-def _plumb(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: int,
-           knees: wp.vec2i, ankles: wp.vec2i, cut: wp.array2d(dtype=wp.float32),
-           value: wp.array(dtype=wp.float32), gradient: wp.array2d(dtype=wp.vec3)):
-    b = wp.tid()
+@wp.func
+def _plumb_row(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: int,
+               knees: wp.vec2i, ankles: wp.vec2i, cut: wp.array2d(dtype=wp.float32), b: int,
+               column: int, value: wp.array2d(dtype=wp.float32),
+               gradient: wp.array3d(dtype=wp.vec3)):
+    """Row ``b``'s plumb-shins term and its gradient, in ``column`` (see
+    :func:`plumb_shins`)."""
     trunk = points[b, neck] - points[b, mid_hip]
     upright = wp.max(wp.dot(trunk, up) / wp.max(wp.length(trunk), 1e-9), 0.0)
     weight = upright * upright  # held constant: no gradient through the trunk
@@ -130,16 +133,35 @@ def _plumb(points: wp.array2d(dtype=wp.vec3), up: wp.vec3, neck: int, mid_hip: i
             total += 1.0 + cosine
             if wp.length(shin) > 1e-9:
                 slope = weight * (up - cosine * shin / length) / length
-        gradient[b, ankles[leg]] = slope
-        gradient[b, knees[leg]] = -slope
-    value[b] = weight * total
+        gradient[b, column, ankles[leg]] = slope
+        gradient[b, column, knees[leg]] = -slope
+    value[b, column] = weight * total
 
 
-_REPROJECTION = CpuKernel(_reprojection, (wp.vec3, wp.vec2, wp.float32, None, None, None,
-                                          None, None, wp.float32, wp.vec3))
-_TRUNK = CpuKernel(_trunk, (wp.vec3, None, None, None, None, None, wp.float32, wp.vec3))
-_PLUMB = CpuKernel(_plumb, (wp.vec3, None, None, None, None, None, wp.float32, wp.float32,
-                            wp.vec3))
+@wp.kernel
+def _terms(points: wp.array2d(dtype=wp.vec3), target: wp.array2d(dtype=wp.vec2),
+           weight: wp.array2d(dtype=wp.float32), focal: wp.vec2, centre: wp.vec2,
+           radial: wp.vec3, tangential: wp.vec2, rho: float, up: wp.vec3, neck: int,
+           mid_hip: int, upright_rho: float, level_rho: float, knees: wp.vec2i,
+           ankles: wp.vec2i, cut: wp.array2d(dtype=wp.float32), columns: wp.vec3i,
+           value: wp.array2d(dtype=wp.float32), gradient: wp.array3d(dtype=wp.vec3)):
+    """The terms whose ``columns`` (data, trunk, plumb) are not negative, in them."""
+    b = wp.tid()
+    if columns[0] >= 0:
+        _data_row(points, target, weight, focal, centre, radial, tangential, rho, b,
+                  columns[0], value, gradient)
+    if columns[1] >= 0:
+        _trunk_row(points, up, neck, mid_hip, upright_rho, level_rho, b, columns[1], value,
+                   gradient)
+    if columns[2] >= 0:
+        _plumb_row(points, up, neck, mid_hip, knees, ankles, cut, b, columns[2], value,
+                   gradient)
+
+
+_TERMS = CpuKernel(_terms, (wp.vec3, wp.vec2, wp.float32, *[None] * 12, wp.float32, None,
+                            wp.float32, wp.vec3))
+_NONE = {"target": torch.zeros(0, 0, 2), "weight": torch.zeros(0, 0),
+         "cut": torch.zeros(0, 2)}  # what a term left out reads (nothing)
 
 
 def keypoint_data(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
@@ -149,13 +171,9 @@ def keypoint_data(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
     Geman-McClure (``rho`` px) of the squared pixel distance between the projected keypoint
     and ``target`` (B, K, 2). A keypoint of weight 0 adds nothing, even where it does not
     project (behind the camera with lens distortion, where the torch form read NaN)."""
-    points = _points(keypoints)
-    value = torch.empty(len(points))
-    gradient = torch.empty(points.shape)
-    _REPROJECTION(len(points), points, target.detach().float().contiguous(),
-                  weight.detach().float().contiguous(), *lens(camera), float(rho), value,
-                  gradient)
-    return with_gradient(keypoints, value, gradient)
+    value, gradient = _launch(keypoints, (0, -1, -1), 1, camera=camera, target=target,
+                              weight=weight, rho=rho)
+    return with_gradient(keypoints, value[:, 0], gradient[:, 0])
 
 
 def lens(camera: Camera) -> tuple[wp.vec2, wp.vec2, wp.vec3, wp.vec2]:
@@ -181,13 +199,9 @@ def trunk_terms(keypoints: torch.Tensor, up: torch.Tensor, upright_rho: float,
       trunk lying along the camera's rays projects almost alike pitched up toward the
       camera. Trunks rho or more from level (upright, seated, reclining) neither pay nor
       feel it, so their fits do not change at all."""
-    points = _points(keypoints)
-    value = torch.empty(len(points), 2)
-    gradient = torch.zeros(len(points), 2, points.shape[1], 3)
-    _TRUNK(len(points), points, _vector(up), NECK, MID_HIP, float(upright_rho),
-           float(level_rho), value, gradient)
-    both = with_gradient(keypoints, value, gradient)
-    return both[:, 0], both[:, 1]
+    value, gradient = _launch(keypoints, (-1, 0, -1), 2, up=up, upright_rho=upright_rho,
+                              level_rho=level_rho)
+    return with_gradient(keypoints, value, gradient).unbind(1)
 
 
 def plumb_shins(keypoints: torch.Tensor, up: torch.Tensor, cut: torch.Tensor
@@ -201,12 +215,43 @@ def plumb_shins(keypoints: torch.Tensor, up: torch.Tensor, cut: torch.Tensor
     plumb, a lying one's do not. Exactly 0, and nothing computed, without such a leg."""
     if not bool(cut.any()):
         return keypoints.new_zeros(len(keypoints))
+    value, gradient = _launch(keypoints, (-1, -1, 0), 1, up=up, cut=cut)
+    return with_gradient(keypoints, value[:, 0], gradient[:, 0])
+
+
+def posed_terms(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
+                weight: torch.Tensor, rho: float, up: torch.Tensor, upright_rho: float,
+                level_rho: float, cut: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """:func:`keypoint_data`, :func:`trunk_terms`' two and :func:`plumb_shins` (each
+    (B,)) in one launch and one autograd node: a keypoint stage's evaluation paid some 25
+    us forward and back for each term's own."""
+    cut = cut if bool(cut.any()) else None
+    value, gradient = _launch(keypoints, (0, 1, -1 if cut is None else 3), 4, camera=camera,
+                              target=target, weight=weight, rho=rho, up=up,
+                              upright_rho=upright_rho, level_rho=level_rho, cut=cut)
+    return with_gradient(keypoints, value, gradient).unbind(1)
+
+
+def _launch(keypoints: torch.Tensor, columns: tuple[int, int, int], count: int,
+            camera: Camera | None = None, target: torch.Tensor | None = None,
+            weight: torch.Tensor | None = None, rho: float = 1.0,
+            up: torch.Tensor | None = None, upright_rho: float = 1.0,
+            level_rho: float = 1.0, cut: torch.Tensor | None = None
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The values (B, ``count``) and gradients (B, ``count``, K, 3) of the terms whose
+    ``columns`` (data, trunk (two), plumb) are not negative, zero elsewhere."""
     points = _points(keypoints)
-    value = torch.empty(len(points))
-    gradient = torch.zeros(points.shape)
-    _PLUMB(len(points), points, _vector(up), NECK, MID_HIP, wp.vec2i(*KNEES), wp.vec2i(*ANKLES),
-           cut.float().contiguous(), value, gradient)
-    return with_gradient(keypoints, value, gradient)
+    value = torch.zeros(len(points), count)
+    gradient = torch.zeros(len(points), count, *points.shape[1:])
+    camera = camera or Camera(1.0, 1.0, 0.0, 0.0)
+    _TERMS(len(points), points,
+           _NONE["target"] if target is None else target.detach().float().contiguous(),
+           _NONE["weight"] if weight is None else weight.detach().float().contiguous(),
+           *lens(camera), float(rho), _vector(up), NECK, MID_HIP, float(upright_rho),
+           float(level_rho), wp.vec2i(*KNEES), wp.vec2i(*ANKLES),
+           _NONE["cut"] if cut is None else cut.float().contiguous(), wp.vec3i(*columns),
+           value, gradient)
+    return value, gradient
 
 
 def _points(keypoints: torch.Tensor) -> torch.Tensor:
@@ -216,5 +261,5 @@ def _points(keypoints: torch.Tensor) -> torch.Tensor:
     return keypoints.detach().float().contiguous()
 
 
-def _vector(up: torch.Tensor) -> wp.vec3:
-    return wp.vec3(*up.tolist())
+def _vector(up: torch.Tensor | None) -> wp.vec3:
+    return wp.vec3(0.0, 0.0, 1.0) if up is None else wp.vec3(*up.tolist())

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from prox_engine.camera import Camera
-from prox_engine.keypoint_terms import keypoint_data, plumb_shins, trunk_terms
+from prox_engine.keypoint_terms import keypoint_data, plumb_shins, posed_terms, trunk_terms
 from prox_engine.keypoints import ANKLES, KNEES, MID_HIP, N_KEYPOINTS, NECK
 from prox_engine.losses import gmof
 
@@ -125,3 +125,25 @@ def test_plumb_shins_value_and_gradient():
     gradient = _gradient(ours, points)
     assert torch.allclose(gradient, _gradient(theirs, points), atol=1e-6)
     assert float(gradient[:, [NECK, MID_HIP]].abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("legs_cut", [True, False])
+def test_posed_terms_are_the_terms_each_on_its_own(legs_cut):
+    """The four terms from one launch: the same values as each term's own, and the same
+    gradient of any combination of them (up to the order of the sums)."""
+    generator = torch.Generator().manual_seed(4)
+    points = _keypoints(3)
+    target = torch.rand(3, N_KEYPOINTS, 2, generator=generator) * 600
+    weight = torch.rand(3, N_KEYPOINTS, generator=generator)
+    up = torch.nn.functional.normalize(torch.tensor([0.2, -0.9, 0.35]), dim=0)
+    cut = torch.tensor([[True, False], [False, False], [True, True]]) & legs_cut
+    own = points.clone().requires_grad_(True)
+    each = [keypoint_data(own, DISTORTED, target, weight, 100.0),
+            *trunk_terms(own, up, 0.3, 0.4), plumb_shins(own, up, cut)]
+    fused = points.clone().requires_grad_(True)
+    together = posed_terms(fused, DISTORTED, target, weight, 100.0, up, 0.3, 0.4, cut)
+    assert all(torch.equal(a, b) for a, b in zip(each, together))
+    mix = torch.rand(4, 3, generator=generator) + 0.5
+    expected = _gradient(sum((m * v) for m, v in zip(mix, each)), own)
+    assert torch.allclose(_gradient(sum((m * v) for m, v in zip(mix, together)), fused),
+                          expected, rtol=1e-5, atol=1e-6 * float(expected.abs().max()))
