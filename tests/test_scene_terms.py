@@ -206,74 +206,74 @@ def _blend_reach(scene: Scene, points: torch.Tensor) -> torch.Tensor:
     return reach.float()
 
 
-def test_penetration_depth_skips_the_exact_query_only_where_nothing_can_be_inside():
-    """Around a tilted slab thinner than a voxel and a box, seen by a tilted, off-centre
-    camera: the exact distances are read where the grid reads less than the band inside
-    or less than the blend of its corners' distances outside (never a voxel), and every
-    point skipped outside is outside by the exact distances too, but one: 5 cm from the
-    slab's edge, where the nearest samples' faces sign it 4.6 cm inside a 2 cm slab (the
-    grid's reading, outside, is right). The voxel alone would skip under half as many."""
-    from prox_engine.synthetic import look_at
-
+def _tilted_slab() -> trimesh.Trimesh:
     slab = trimesh.creation.box(extents=(1.2, 0.8, 0.02))
     slab.apply_transform(trimesh.transformations.rotation_matrix(0.4, [1.0, 0.3, 0.0]))
+    return slab
+
+
+def _depth_as_read(mesh, dim: int, spacing: float, count: int
+                   ) -> tuple[Scene, torch.Tensor, dict[str, torch.Tensor]]:
+    """``mesh`` seen by a tilted, off-centre camera, ``count`` points about its surface
+    (camera frame), and the penetration depth there as the term reads it, written in torch:
+    the triangles' distances (``exact``) where the grid reads less than two voxels inside or
+    less than its blend reach outside (``read``), the grid's elsewhere (``depth``), and
+    its gradient by autograd (``slope``)."""
+    from prox_engine.synthetic import look_at
+
+    cam2world = look_at(np.array([0.7, -2.5, 1.3]), np.array([0.1, 0.2, 0.0]))
+    scene = _seen_scene(mesh, cam2world, dim=dim, spacing=spacing)
+    voxel = scene.sdf.voxel_size
+    world = torch.from_numpy(mesh.sample(count, seed=0)).float()
+    world = world + torch.randn(len(world), 3, generator=torch.Generator().manual_seed(0)) * voxel
+    points = _in_camera(world, cam2world).requires_grad_(True)
+    values = scene.signed_distance(points)
+    reach = _blend_reach(scene, points.detach()).clamp(max=voxel)
+    read = (values > -2 * voxel) & ((values < 0) | (values < reach))
+    exact, _ = scene._triangle_distance(scene.to_world(points))
+    values = values.index_put((torch.nonzero(read).flatten(),), exact[read].float())
+    (slope,) = torch.autograd.grad(torch.relu(-values).sum(), points)
+    return scene, points.detach(), {"read": read, "exact": exact.detach(), "slope": slope,
+                                    "depth": torch.relu(-values.detach())}
+
+
+def test_penetration_depth_skips_the_exact_query_only_where_nothing_can_be_inside():
+    """Around a tilted slab thinner than a voxel and a box: the exact distances are read
+    where the grid reads less than the band inside or less than the blend of its corners'
+    distances outside (never a voxel), and every point skipped outside is outside by the
+    exact distances too, but one: 5 cm from the slab's edge, where the nearest samples'
+    faces sign it 4.6 cm inside a 2 cm slab (the grid's reading, outside, is right). The
+    voxel alone would skip under half as many."""
     box = trimesh.creation.box(extents=(0.5, 0.5, 0.5))
     box.apply_translation([0.3, 1.4, 0.1])
-    mesh = trimesh.util.concatenate([slab, box])
-    cam2world = look_at(np.array([0.7, -2.5, 1.3]), np.array([0.1, 0.2, 0.0]))
-    scene = _seen_scene(mesh, cam2world, dim=40, spacing=0.02)
+    scene, camera, expected = _depth_as_read(trimesh.util.concatenate([_tilted_slab(), box]),
+                                             dim=40, spacing=0.02, count=4000)
     voxel = scene.sdf.voxel_size
-    world = torch.from_numpy(mesh.sample(4000, seed=0)).float()
-    world = world + torch.randn(len(world), 3, generator=torch.Generator().manual_seed(0)) * voxel
-    camera = _in_camera(world, cam2world)
-    grid = scene.signed_distance(camera)
-    reach = _blend_reach(scene, camera)
-    read = (grid > -2 * voxel) & ((grid < 0) | (grid < reach.clamp(max=voxel)))
-    exact, _ = scene._triangle_distance(scene.to_world(camera))  # as the term reads them
-    expected = torch.relu(-torch.where(read, exact.float(), grid))
     depth, slope = scene.penetration_depth(camera, exact_band=2 * voxel)
-    assert torch.allclose(depth, expected, atol=1e-5)
-    # the slope is the gradient of the depth read as the term read it with autograd
-    points = camera.clone().requires_grad_(True)
-    values = scene.signed_distance(points)
-    exact_values, _ = scene._triangle_distance(scene.to_world(points[read]))
-    values = values.index_put((torch.nonzero(read).flatten(),), exact_values.float())
-    (expected_slope,) = torch.autograd.grad(torch.relu(-values).sum(), points)
-    assert torch.allclose(slope, expected_slope, atol=1e-4)
+    assert torch.allclose(depth, expected["depth"], atol=1e-5)
+    assert torch.allclose(slope, expected["slope"], atol=1e-4)
+    grid, exact, read = scene.signed_distance(camera), expected["exact"], expected["read"]
     assert (exact[read & (grid < 0)] < 0).any()  # the slab is read inside where it is
     near = grid.abs() < 2 * voxel
     skipped, by_voxel = near & ~read, near & (grid >= voxel)
-    assert (reach < 0.87 * voxel).all() and skipped.sum() > 2 * by_voxel.sum() > 0
+    assert (_blend_reach(scene, camera) < 0.87 * voxel).all()
+    assert skipped.sum() > 2 * by_voxel.sum() > 0
     assert (exact[by_voxel] > 0).all() and (exact[skipped] <= 0).sum() == 1
 
 
 def test_penetration_depth_of_points_the_sample_grid_leaves_to_the_tree():
-    """On a grid of 10 cm voxels over a tilted slab sampled every 5 cm, seen by a tilted,
-    off-centre camera, some points it reads exactly have fewer than four samples
-    within one ring of cells: the kernel leaves them to the k-d tree, and every depth and
-    slope is the grid's or the nearest triangle's as the term reads them."""
-    from prox_engine.synthetic import look_at
-
-    slab = trimesh.creation.box(extents=(1.2, 0.8, 0.02))
-    slab.apply_transform(trimesh.transformations.rotation_matrix(0.4, [1.0, 0.3, 0.0]))
-    cam2world = look_at(np.array([0.7, -2.5, 1.3]), np.array([0.1, 0.2, 0.0]))
-    scene = _seen_scene(slab, cam2world, dim=24, spacing=0.05)
+    """On a grid of 10 cm voxels over a tilted slab sampled every 5 cm, some points read
+    exactly have fewer than four samples within one ring of cells: the kernel leaves them
+    to the k-d tree, and every depth and slope is the grid's or the nearest triangle's as
+    the term reads them."""
+    scene, camera, expected = _depth_as_read(_tilted_slab(), dim=24, spacing=0.05,
+                                             count=2000)
     voxel = scene.sdf.voxel_size
-    world = torch.from_numpy(slab.sample(2000, seed=0)).float()
-    world = world + torch.randn(len(world), 3, generator=torch.Generator().manual_seed(0)) * voxel
-    camera = _in_camera(world, cam2world)
     _, _, left = scene._inside_depth(camera, (-2 * voxel, voxel))
     assert 5 <= left.sum() < 0.5 * len(camera)
-    points = camera.clone().requires_grad_(True)
-    values = scene.signed_distance(points)
-    reach = _blend_reach(scene, camera).clamp(max=voxel)
-    read = torch.nonzero((values > -2 * voxel) & ((values < 0) | (values < reach))).flatten()
-    exact, _ = scene._triangle_distance(scene.to_world(points[read]).double())
-    values = values.index_put((read,), exact.float())
-    (expected_slope,) = torch.autograd.grad(torch.relu(-values).sum(), points)
     depth, slope = scene.penetration_depth(camera, exact_band=2 * voxel)
-    assert torch.allclose(depth, torch.relu(-values.detach()), atol=1e-6)
-    assert torch.allclose(slope, expected_slope, atol=1e-4)
+    assert torch.allclose(depth, expected["depth"], atol=1e-6)
+    assert torch.allclose(slope, expected["slope"], atol=1e-4)
     assert (depth[left] > 0).any() and (depth[~left] > 0).any()
 
 
