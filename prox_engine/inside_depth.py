@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from .nearest_face import _faces_k, nearest_face
+from .nearest_face import FacesK, nearest_face
 from .sample_grid import MAX_K, RINGS, SampleGrid, k_nearest
 from .trilinear import Trilinear, blend_reach, read_grid
 from .warp_launch import CpuKernel
@@ -39,7 +39,7 @@ def _inside(points: wp.array(dtype=wp.vec3), grid: wp.array3d(dtype=wp.float32),
         if wp.isfinite(world):
             index, best, sure = k_nearest(world, samples, starts, origin, cell, dims, k, rings)
             if sure != 0:
-                faces = _faces_k()
+                faces = FacesK()
                 for j in range(k):
                     faces[j] = slot_face[index[j]]
                 q, side = nearest_face(world, faces, k, corners, normals, areas, 0)
@@ -60,11 +60,10 @@ _INSIDE = CpuKernel(_inside, (wp.vec3, wp.float32, *[None] * 6, wp.vec3d, wp.int
 
 class InsideDepth:
     """How deep camera-frame points are inside a scene: its SDF ``reader`` (in the points'
-    frame), replaced within a band of readings by the distance to the nearest point of the
-    nearest of the faces (``triangles`` (F, 3, 3) float64 in the world frame, ``cam2world``
-    (4, 4) from the points', with unit ``normals``) of the point's ``k`` nearest surface
-    samples in ``grid`` (``slot_face`` (S,): each grid slot's face), signed by that face's
-    side."""
+    frame), replaced near surfaces by the distance to the nearest point of the nearest of
+    the faces (``triangles`` (F, 3, 3) float64 in the world frame, ``cam2world`` (4, 4)
+    from the points', with unit ``normals``) of the point's ``k`` nearest surface samples
+    in ``grid`` (``slot_face`` (S,): each grid slot's face), signed by that face's side."""
 
     def __init__(self, reader: Trilinear, cam2world: torch.Tensor, grid: SampleGrid,
                  slot_face: torch.Tensor, triangles: torch.Tensor, normals: torch.Tensor,
@@ -83,10 +82,12 @@ class InsideDepth:
     def __call__(self, points: torch.Tensor, band: tuple[float, float]
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per point (N, 3): its depth (>= 0, float32) inside the scene, the depth's
-        gradient in the point (N, 3), and whether it is left undone (N,) bool: exact
-        where the grid reads within ``band`` (low, high), except at points the sample grid
-        cannot answer alone (far from every sample, or outside the grid), whose depth is
-        the SDF's."""
+        gradient in the point (N, 3), and whether it is left undone (N,) bool: exact where
+        the grid reads above ``band``'s low and inside, or outside by less than both its
+        high and the blend of the grid corners' distances (:func:`trilinear.blend_reach`:
+        farther outside nothing can be inside), except at points the sample grid cannot
+        answer alone (far from every sample, or outside the grid), whose depth is the
+        SDF's."""
         flat = points.detach().reshape(-1, 3).float().contiguous()
         n = len(flat)
         depth, slope = torch.empty(n), torch.empty(n, 3)

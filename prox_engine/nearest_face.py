@@ -55,12 +55,12 @@ def _closest(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.vec3d:
 
 
 MAX_K = 8  # candidates a point may have
-_faces_k = wp.types.vector(length=MAX_K, dtype=wp.int64)
+FacesK = wp.types.vector(length=MAX_K, dtype=wp.int64)  # a point's candidate faces
 _lengths_k = wp.types.vector(length=MAX_K, dtype=wp.float64)
 
 
 @wp.func
-def nearest_face(p: wp.vec3d, faces: _faces_k, k: int, corners: wp.array2d(dtype=wp.vec3d),
+def nearest_face(p: wp.vec3d, faces: FacesK, k: int, corners: wp.array2d(dtype=wp.vec3d),
                  normals: wp.array(dtype=wp.vec3d), areas: wp.array(dtype=wp.float64),
                  vote: int) -> tuple[wp.vec3d, wp.float64]:
     """The nearest point on the nearest of the first ``k`` candidate ``faces`` of ``p``,
@@ -104,7 +104,7 @@ def _nearest(points: wp.array(dtype=wp.vec3d), candidates: wp.array2d(dtype=wp.i
              areas: wp.array(dtype=wp.float64), vote: int,
              closest: wp.array(dtype=wp.vec3d), sign: wp.array(dtype=wp.float64)):
     i = wp.tid()
-    faces = _faces_k()
+    faces = FacesK()
     k = candidates.shape[1]
     for j in range(k):
         faces[j] = candidates[i, j]

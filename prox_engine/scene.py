@@ -87,9 +87,9 @@ class Scene:
         trilinear blend of those less than the blend of those distances
         (:func:`trilinear.blend_reach`, under sqrt(3) / 2 of a voxel; a voxel at most).
         Skipping the exact query there leaves two fifths of the points within a voxel
-        outside to query (a speed seed's scene stages). The two disagree only where a noisy scan edge flips the nearest face's
-        sign (4 of 274,000 readings on seed 0's sofa, read 2-6 cm inside): there the grid's
-        reading, outside, stands."""
+        outside to query (a speed seed's scene stages). The two disagree only where a noisy
+        scan edge flips the nearest face's sign (4 of 274,000 readings on seed 0's sofa,
+        read 2-6 cm inside): there the grid's reading, outside, stands."""
         depth, slope, left = self._inside_depth(points_cam, (-exact_band, self.sdf.voxel_size))
         left = torch.nonzero(left).flatten()
         if len(left):  # points the sample grid left to the k-d tree
