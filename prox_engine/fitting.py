@@ -154,9 +154,6 @@ class Fitter:
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
-        # The whole mesh's normals, for the scale search (a kernel: 1.2 ms for two bodies
-        # where geometry.vertex_normals took 3.1)
-        self.vertex_normals = VertexNormals(body.faces, torch.arange(body.num_vertices))
         # How deep each vertex of the scene terms rests inside a surface it touches
         # (config.soft_sink; None: on it) and may enter it unpenalised (one depth for all
         # without a sink)
@@ -164,7 +161,11 @@ class Fitter:
         self.penetration_tolerance: float | torch.Tensor = config.penetration_tolerance
         self.toes, self.scene_subset, self.penetration_vertices, self.contact_normals = (
             None, None, None, None)
+        # The whole mesh's normals, for the scale search (a kernel: 1.2 ms for two bodies
+        # where geometry.vertex_normals took 3.1); a fit without a scene never reads them
+        self.vertex_normals: VertexNormals | None = None
         if needs_scene:
+            self.vertex_normals = VertexNormals(body.faces, torch.arange(body.num_vertices))
             with torch.no_grad():  # the standing mean body, which both sets are chosen on
                 rest = body(body.init_params(1))
             if config.scale_free_toes:  # the vertices the scale search does not count
@@ -602,7 +603,8 @@ class Fitter:
         cfg, body = self.config, self.body
         weights = self._keypoint_weights(stage, conf)
         upright = cfg.upright_weight * ankle_seen(conf)
-        cut = cut_legs(conf)
+        legs = cut_legs(conf)
+        cut = legs.float() if bool(legs.any()) else None  # no cut leg: the shins' term is 0
         priors = {"pose_prior": (body.pose_prior, body.pose_group()),
                   "shape": (body.shape_prior, body.shape_group()),
                   "bending": (body.bending_prior, body.pose_group()),

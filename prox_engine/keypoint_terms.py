@@ -221,11 +221,11 @@ def plumb_shins(keypoints: torch.Tensor, up: torch.Tensor, cut: torch.Tensor
 
 def posed_terms(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
                 weight: torch.Tensor, rho: float, up: torch.Tensor, upright_rho: float,
-                level_rho: float, cut: torch.Tensor) -> tuple[torch.Tensor, ...]:
+                level_rho: float, cut: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
     """:func:`keypoint_data`, :func:`trunk_terms`' two and :func:`plumb_shins` (each
     (B,)) in one launch and one autograd node: a keypoint stage's evaluation paid some 25
-    us forward and back for each term's own."""
-    cut = cut if bool(cut.any()) else None
+    us forward and back for each term's own. ``cut`` None: no leg is cut (the shins' term
+    0, nothing computed)."""
     value, gradient = _launch(keypoints, (0, 1, -1 if cut is None else 3), 4, camera=camera,
                               target=target, weight=weight, rho=rho, up=up,
                               upright_rho=upright_rho, level_rho=level_rho, cut=cut)

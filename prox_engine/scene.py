@@ -41,8 +41,8 @@ class Scene:
         self._normals64 = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
         samples, self._sample_face = surface_samples(self.vertices, self.faces, sample_spacing)
         self._samples = SampleGrid(samples, surface_tree(samples))
-        self.contact_distance = ContactDistance(self._camera_sdf, sdf.seen_from(torch.eye(4)),
-                                                self.cam2world, sdf.voxel_size / 2)
+        self.contact_distance = ContactDistance(self._camera_sdf, sdf.reader, self.cam2world,
+                                                sdf.voxel_size / 2)
         self._inside_depth = InsideDepth(
             self._camera_sdf, self.cam2world, self._samples,
             torch.from_numpy(self._sample_face[self._samples.order]), tri, self._normals64,

@@ -37,7 +37,7 @@ class SignedDistanceField:
     bmax: torch.Tensor  # (3,)
 
     def __post_init__(self) -> None:
-        self._read = Trilinear(self.grid, self.bmin, self.bmax)
+        self.reader = Trilinear(self.grid, self.bmin, self.bmax)  # world-frame points
 
     @property
     def dim(self) -> int:
@@ -50,7 +50,7 @@ class SignedDistanceField:
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         """Signed distances at world points (..., 3), trilinear between the grid's samples;
         outside the box, the border value."""
-        return self._read(points)
+        return self.reader(points)
 
     def seen_from(self, frame: torch.Tensor) -> Trilinear:
         """Reads as :meth:`__call__`'s of points (..., 3) given in another frame, ``frame``
