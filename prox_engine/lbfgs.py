@@ -143,7 +143,7 @@ def _calls(x: np.ndarray, max_iter: int, max_calls: int, ftol: float | None,
     """A group's minimisation: up to ``max_calls`` calls of torch's step, each undone if
     it fails, the loss compared before and after each. Returns the final point and whether
     a call was undone."""
-    state: dict = {"n_iter": 0, "pairs": Pairs(history), "H_diag": 1}
+    state: dict = {"n_iter": 0, "pairs": Pairs(history, len(x)), "H_diag": 1}
     answer = yield x
     for call in range(max_calls):
         backup = x
@@ -210,36 +210,48 @@ def _step(x: np.ndarray, answer: tuple[float, np.ndarray], state: dict, max_iter
 
 
 class Pairs:
-    """L-BFGS's last ``size`` pairs of steps s_i and gradient changes y_i (float64), with
-    rho_i = 1 / (y_i . s_i) and the inner products s_i . y_j and y_i . y_j: a new pair's
-    against the others only, one product of the variables' length a step. The products
-    are torch's, which keeps to PROX_THREADS (numpy's BLAS would thread them); the m x m
-    work is numpy's."""
+    """L-BFGS's last ``size`` pairs of steps s_i and gradient changes y_i of ``n``
+    variables (float64, oldest first), with rho_i = 1 / (y_i . s_i) and the inner products
+    s_i . y_j and y_i . y_j, in buffers kept from step to step: a new pair costs its
+    products with the others (one product of the variables' length), not a copy of
+    them. The products are torch's, which keeps to PROX_THREADS (numpy's BLAS would
+    thread them); the m x m work is numpy's."""
 
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self.pairs = np.zeros((0, 0))  # s_1..s_m, then y_1..y_m
-        self.sy = self.yy = np.zeros((0, 0))
-        self.rho = np.zeros(0)
+    def __init__(self, size: int, n: int) -> None:
+        self.size, self.count, self.start = size, 0, 0
+        # the steps' slots, then the changes' (a ring: the pairs, oldest first, in the
+        # slots order[0], order[1], ...)
+        self.pairs = np.zeros((2 * size, n))
+        self.order = np.zeros(0, dtype=np.int64)
+        self._pairs = torch.from_numpy(self.pairs)
+        self.rho = np.zeros(size)
+        self.sy, self.yy = np.zeros((size, size)), np.zeros((size, size))
+        # the triangular systems of direction(): I + rho_i (s_i . y_j) for j > i, and
+        # I + rho_i (y_i . s_j) for j < i
+        self._first, self._second = np.eye(size), np.eye(size)
 
     def add(self, s: np.ndarray, y: np.ndarray, rho: float) -> None:
-        m = len(self.rho)
-        keep = slice(1, None) if m == self.size else slice(None)
-        old = self.pairs if m else np.zeros((0, len(s)))
-        self.pairs = np.concatenate([old[:m][keep], s[None], old[m:][keep], y[None]])
-        self.rho = np.append(self.rho[keep], rho)
-        m = len(self.rho)
-        # against [y, s]: the new pair's s_i . y and y_i . s, and its y_i . y
-        products = (torch.from_numpy(self.pairs) @ torch.from_numpy(np.stack([y, s], 1))
-                    ).numpy()
-        self.sy = _grown(self.sy[keep, keep], products[:m, 0], products[m:, 1])
-        along = products[m:, 0]
-        self.yy = _grown(self.yy[keep, keep], along, along)
-        r = self.rho  # the triangular systems of direction()
-        self._first = np.triu(self.sy, 1) * r[:, None]
-        self._first[np.diag_indices(m)] = 1.0
-        self._second = np.tril(self.sy.T, -1) * r[:, None]
-        self._second[np.diag_indices(m)] = 1.0
+        size, m = self.size, self.count
+        if m == size:  # full: the oldest pair goes, its slot the new one's
+            self.start = (self.start + 1) % size
+            self.rho[:-1] = self.rho[1:]
+            for gram in (self.sy, self.yy, self._first, self._second):
+                gram[:-1, :-1] = gram[1:, 1:]
+            m -= 1
+        self.order = (self.start + np.arange(m + 1)) % size  # the pairs' slots, oldest first
+        slot = self.order[m]
+        self.pairs[slot], self.pairs[size + slot], self.rho[m] = s, y, rho
+        # against [y, s]: the pairs' s_i . y and y_i . s, and their y_i . y
+        products = (self._pairs @ torch.from_numpy(np.stack([y, s], 1))).numpy()
+        steps, changes = products[self.order], products[size + self.order]
+        self.sy[:m + 1, m] = steps[:, 0]
+        self.sy[m, :m] = changes[:m, 1]
+        self.yy[:m + 1, m] = self.yy[m, :m + 1] = changes[:, 0]
+        self._first[:m, m] = self.sy[:m, m] * self.rho[:m]
+        self._first[m, :m] = self._second[:m, m] = 0.0
+        self._second[m, :m] = rho * self.sy[:m, m]
+        self._first[m, m] = self._second[m, m] = 1.0
+        self.count = m + 1
 
     def direction(self, grad: np.ndarray, scale: float) -> np.ndarray:
         """-H grad for the inverse Hessian H of the pairs with H_0 = ``scale`` I: torch's
@@ -251,26 +263,17 @@ class Pairs:
         a_i + rho_i sum_{j>i} (s_i . y_j) a_j = -rho_i s_i . grad; the second's c_i = a_i
         - rho_i y_i . r_i, r_i = scale q_0 + sum_{j<i} c_j s_j, solves c_i + rho_i
         sum_{j<i} (y_i . s_j) c_j = a_i - rho_i scale y_i . q_0. The direction is r_m."""
-        m, r = len(self.rho), self.rho
+        size, m = self.size, self.count
         if not m:
             return grad * -scale
-        pairs = torch.from_numpy(self.pairs)
-        along = (pairs @ torch.from_numpy(grad)).numpy()  # s_i . grad, then y_i . grad
-        a, _ = dtrtrs(self._first, -r * along[:m], lower=0)  # LAPACK itself: scipy's
-        y_q = -along[m:] - self.yy @ a  # solve_triangular checked its arguments for 7 us
-        c, _ = dtrtrs(self._second, a - r * scale * y_q, lower=1)
-        mix = torch.from_numpy(np.concatenate([c, -scale * a]))
-        return (mix @ pairs).numpy() - scale * grad
-
-
-def _grown(gram: np.ndarray, column: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """``gram`` (k, k) with a last ``column`` and ``row`` (k + 1) for a new pair."""
-    k = len(gram)
-    out = np.empty((k + 1, k + 1))
-    out[:k, :k] = gram
-    out[:, k] = column
-    out[k, :] = row
-    return out
+        r = self.rho[:m]
+        along = (self._pairs @ torch.from_numpy(grad)).numpy()  # s_i . grad, y_i . grad
+        a, _ = dtrtrs(self._first[:m, :m], -r * along[self.order], lower=0)  # LAPACK
+        y_q = -along[size + self.order] - self.yy[:m, :m] @ a  # itself: scipy's
+        c, _ = dtrtrs(self._second[:m, :m], a - r * scale * y_q, lower=1)  # solve_triangular
+        mix = np.zeros(2 * size)  # checked its arguments for 7 us
+        mix[self.order], mix[size + self.order] = c, -scale * a
+        return (torch.from_numpy(mix) @ self._pairs).numpy() - scale * grad
 
 
 def _cubic_interpolate(x1: float, f1: float, g1: float, x2: float, f2: float, g2: float,

@@ -103,7 +103,7 @@ def test_the_direction_is_the_two_loop_recursion_over_the_last_pairs():
         steps = [torch.randn(30, dtype=torch.float64) for _ in range(m)]
         changes = [s + 0.3 * torch.randn(30, dtype=torch.float64) for s in steps]
         rho = [1 / float(y.dot(s)) for y, s in zip(changes, steps)]
-        pairs = lbfgs.Pairs(20)
+        pairs = lbfgs.Pairs(20, 30)
         for s, y, r in zip(steps, changes, rho):
             pairs.add(s.numpy(), y.numpy(), r)
         kept = slice(max(0, m - 20), m)
