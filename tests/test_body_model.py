@@ -89,7 +89,8 @@ def test_a_vertex_subset_is_posed_as_the_whole_mesh_picks_it(body):
 def test_a_shape_expansion_is_first_order_about_its_point_and_exact_outside(body):
     """Within :meth:`shape_expanded` a free shape's vertices, keypoints and their
     gradients are the first-order expansion about each row's own expansion point: equal
-    to the model's at the point, within 0.1 mm (gradients within 3 %) a scene stage's step
+    to the model's at the point (gradients within 1e-4: the slopes are central
+    differences in float32), within 0.1 mm (gradients within 3 %) a scene stage's step
     away (0.05 logits; 0.2 mm in a batch of 8 other shapes), apart by second-order terms at
     0.3; a frozen shape, another vertex subset and the model outside the context are
     exact."""
@@ -119,7 +120,7 @@ def test_a_shape_expansion_is_first_order_about_its_point_and_exact_outside(body
         assert apart(expanded[0], exact[0]) < bound
         assert apart(expanded[1], exact[1]) < bound
         gap = float((expanded[2] - exact[2]).norm() / exact[2].norm())
-        assert gap < (1e-5 if step == 0 else 0.03)  # the slope moves with the point
+        assert gap < (1e-4 if step == 0 else 0.03)  # the slope moves with the point
     far = apart(posed(0.3, True)[0], posed(0.3, False)[0])
     assert 1e-3 < far < 1e-2  # the expansion, not the model: second order shows at 0.3
     assert apart(posed(0.3, True, free=False)[0], posed(0.3, False, free=False)[0]) < 1e-6

@@ -19,7 +19,6 @@ from contextlib import contextmanager
 import numpy as np
 import roma
 import torch
-from torch.func import jacfwd
 
 from .. import assets
 from ..geometry import vertex_normals
@@ -46,6 +45,7 @@ FINGER_BONES = [f"{b}.{s}" for s in SIDES for b in
 PHENOTYPES = ["gender", "age", "muscle", "weight", "height", "proportions"]
 # The rest quantities AnnyBody.shape_expanded expands (with the rest vertices).
 _EXPANDED = ("bone_poses", "offsets", "local_anchors")
+SHAPE_NUDGE = 0.003  # logits: the central differences of AnnyBody.shape_expanded
 
 # Anatomical limits (radians) of each bone's axis-angle components (x, y, z) in its own
 # frame; signs measured on anny: hip flexion is -x, knee, elbow and trunk flexion +x,
@@ -501,11 +501,13 @@ class AnnyBody(BodyModel):
                        ) -> Iterator[None]:
         """Within it, a free shape's rest quantities (bone poses and offsets, keypoint
         anchors, the rest vertices of ``vertices``) are their first-order expansion about
-        the shape of ``params`` (B, 6), one per row, found for every row at once by
-        forward-mode autograd: a forward and backward on the scene terms' vertices then
-        costs 3.0 ms instead of 7.8 (2.5 frozen), for 12 ms an expansion; 8 rows 16.6 ms
-        instead of 25.4, for 55-63 ms. A scene stage moves the logits by 0.1-0.2, where the
-        expansion is within half a millimetre of the model."""
+        the shape of ``params`` (B, 6), one per row, its slopes central differences
+        (:data:`SHAPE_NUDGE` each way along each logit) found for every row in one
+        batched forward: a forward and backward on the scene terms' vertices then costs
+        3.0 ms instead of 7.8 (2.5 frozen), for 5 ms an expansion (26 for 8 rows;
+        forward-mode autograd took 14 and 74, and gave gradients as near the model's). A
+        scene stage moves the logits by 0.1-0.2, where the expansion is within half a
+        millimetre of the model."""
         subset = self._subset(vertices)
         base = params["shape"].detach().clone()  # the optimiser moves the shape in place
 
@@ -514,12 +516,15 @@ class AnnyBody(BodyModel):
             return (*(values[k] for k in _EXPANDED),
                     self.phenotype_coefficients(torch.sigmoid(shape)))
 
-        def own(slope: torch.Tensor) -> torch.Tensor:
-            """(B, 6, n): each row's slope in its own shape, from (B, ..., B, 6)."""
-            return slope.diagonal(dim1=0, dim2=-2).movedim(-1, 0).flatten(1, -2).mT
-
-        *at, coeffs = skeleton(base)
-        *slopes, coeff_slope = (own(s) for s in jacfwd(skeleton)(base))  # coeffs: (B, 6, C)
+        rows, size = len(base), base.shape[1]
+        nudge = torch.eye(size) * SHAPE_NUDGE  # each row nudged along each logit, both ways
+        nudged = torch.cat([base, (base[:, None] + nudge).flatten(0, 1),
+                            (base[:, None] - nudge).flatten(0, 1)])
+        values = skeleton(nudged)
+        *at, coeffs = (v[:rows] for v in values)
+        *slopes, coeff_slope = (  # (B, 6, n): central differences
+            (v[rows:rows + rows * size] - v[rows + rows * size:]).reshape(rows, size, -1)
+            / (2 * SHAPE_NUDGE) for v in values)
         if subset is not None:
             blend = subset.data["blendshapes"]  # (C, V, 3)
             at.append(subset.data["template"] + torch.einsum("bc,cvd->bvd", coeffs, blend))
