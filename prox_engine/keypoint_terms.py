@@ -7,6 +7,8 @@ many nodes backward, at 2-5 us each for (B, 118, 3) tensors. Here each term is o
 and one autograd node whose backward only scales the gradient written with the value."""
 from __future__ import annotations
 
+import functools
+
 import torch
 import warp as wp
 
@@ -179,9 +181,13 @@ def keypoint_data(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
 def lens(camera: Camera) -> tuple[wp.vec2, wp.vec2, wp.vec3, wp.vec2]:
     """The camera as :func:`reprojected` reads it: focal lengths, principal point, radial
     (k1, k2, k3) and tangential (p1, p2) distortion."""
-    k1, k2, p1, p2, k3 = (list(camera.k) + [0.0] * 5)[:5]
-    return (wp.vec2(camera.fx, camera.fy), wp.vec2(camera.cx, camera.cy), wp.vec3(k1, k2, k3),
-            wp.vec2(p1, p2))
+    return _lens(camera.fx, camera.fy, camera.cx, camera.cy, *(list(camera.k) + [0.0] * 5)[:5])
+
+
+@functools.lru_cache(maxsize=16)  # the same few vectors, launch after launch
+def _lens(fx: float, fy: float, cx: float, cy: float, k1: float, k2: float, p1: float,
+          p2: float, k3: float) -> tuple[wp.vec2, wp.vec2, wp.vec3, wp.vec2]:
+    return wp.vec2(fx, fy), wp.vec2(cx, cy), wp.vec3(k1, k2, k3), wp.vec2(p1, p2)
 
 
 def trunk_terms(keypoints: torch.Tensor, up: torch.Tensor, upright_rho: float,
@@ -244,12 +250,13 @@ def _launch(keypoints: torch.Tensor, columns: tuple[int, int, int], count: int,
     value = torch.zeros(len(points), count)
     gradient = torch.zeros(len(points), count, *points.shape[1:])
     camera = camera or Camera(1.0, 1.0, 0.0, 0.0)
+    world_up = _vector(*([0.0, 0.0, 1.0] if up is None else up.tolist()))
     _TERMS(len(points), points,
            _NONE["target"] if target is None else target.detach().float().contiguous(),
            _NONE["weight"] if weight is None else weight.detach().float().contiguous(),
-           *lens(camera), float(rho), _vector(up), NECK, MID_HIP, float(upright_rho),
-           float(level_rho), wp.vec2i(*KNEES), wp.vec2i(*ANKLES),
-           _NONE["cut"] if cut is None else cut.float().contiguous(), wp.vec3i(*columns),
+           *lens(camera), float(rho), world_up, NECK, MID_HIP, float(upright_rho),
+           float(level_rho), *_LEGS,
+           _NONE["cut"] if cut is None else cut.float().contiguous(), _columns(*columns),
            value, gradient)
     return value, gradient
 
@@ -261,5 +268,7 @@ def _points(keypoints: torch.Tensor) -> torch.Tensor:
     return keypoints.detach().float().contiguous()
 
 
-def _vector(up: torch.Tensor | None) -> wp.vec3:
-    return wp.vec3(0.0, 0.0, 1.0) if up is None else wp.vec3(*up.tolist())
+# The kernel's constant arguments, built once: a warp vector costs 1 us to build.
+_LEGS = (wp.vec2i(*KNEES), wp.vec2i(*ANKLES))
+_vector = functools.lru_cache(maxsize=16)(wp.vec3)
+_columns = functools.lru_cache(maxsize=16)(wp.vec3i)
