@@ -268,10 +268,11 @@ class Pairs:
             return grad * -scale
         r = self.rho[:m]
         along = (self._pairs @ torch.from_numpy(grad)).numpy()  # s_i . grad, y_i . grad
-        a, _ = dtrtrs(self._first[:m, :m], -r * along[self.order], lower=0)  # LAPACK
-        y_q = -along[size + self.order] - self.yy[:m, :m] @ a  # itself: scipy's
-        c, _ = dtrtrs(self._second[:m, :m], a - r * scale * y_q, lower=1)  # solve_triangular
-        mix = np.zeros(2 * size)  # checked its arguments for 7 us
+        # dtrtrs is LAPACK's own: scipy's solve_triangular checked its arguments for 7 us
+        a, _ = dtrtrs(self._first[:m, :m], -r * along[self.order], lower=0)
+        y_q = -along[size + self.order] - self.yy[:m, :m] @ a
+        c, _ = dtrtrs(self._second[:m, :m], a - r * scale * y_q, lower=1)
+        mix = np.zeros(2 * size)
         mix[self.order], mix[size + self.order] = c, -scale * a
         return (torch.from_numpy(mix) @ self._pairs).numpy() - scale * grad
 
