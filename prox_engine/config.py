@@ -46,6 +46,9 @@ class FitConfig:
     scale_faint_legs: bool = True
     # ... and counts a body through a thin surface by its axis (see scale_search.AXIS_WEIGHT)
     scale_axes: bool = True
+    # ... and counts only the feet's contact for a standing body (see
+    # scale_search.STANDING_PARTS)
+    scale_standing_feet: bool = True
     # ... and does not count the toes as penetrating (see scale_search.TOE_REACH)
     scale_free_toes: bool = True
     # ... and searches the unseen feet of kneeling legs pointed along the shins (see

@@ -21,8 +21,8 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LAB
                         LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, cut_legs,
                         side_swap, thighs_hidden)
 from .initialisation import best_start
-from .scale_search import (best_scale, carrying_vertices, size_prior, toe_vertices,
-                           unseen_feet_on_kneeling_legs)
+from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, size_prior,
+                           standing_legs, toe_vertices, unseen_feet_on_kneeling_legs)
 from .scene import Scene
 
 
@@ -153,6 +153,8 @@ class Fitter:
         self.on_stage = on_stage  # told each stage's name as it starts (progress, cancelling)
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
+        self.standing_parts = torch.tensor([p in STANDING_PARTS for p in config.contact_parts
+                                            if p in body.contact_parts], dtype=torch.bool)
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
         # How deep each vertex of the scene terms rests inside a surface it touches
         # (config.soft_sink; None: on it) and may enter it unpenalised (one depth for all
@@ -721,6 +723,8 @@ class Fitter:
         seen = [joints[b, seen[b]] for b in range(len(joints))]
         faint = [joints[b, faint[b]] for b in range(len(joints))]
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
+        standing = (standing_legs(joints, detected, self.scene.up_in_camera())
+                    if bool(self.standing_parts.any()) and cfg.scale_standing_feet else None)
 
         def search(rows: torch.Tensor, ceilings: torch.Tensor | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -731,7 +735,8 @@ class Fitter:
                               [seen[r] for r in rows] if cfg.scale_visibility else None,
                               self.toes, None if axes is None else axes[rows],
                               [faint[r] for r in rows] if cfg.scale_faint_legs else None,
-                              ceilings)
+                              ceilings, None if standing is None else standing[rows],
+                              self.standing_parts)
         return search
 
     def _faint_legs(self, detected: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:

@@ -528,6 +528,79 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
     assert abs(float(scale) - 1.0) < 0.02
 
 
+def test_scale_search_counts_only_the_feet_of_a_standing_body(body):
+    """A correctly placed standing body with a wall 8 cm behind its back: counting every
+    contact part, the search moves it 1-2 % farther, toward the wall (the back and hands
+    reach for it); counting only the feet of a standing body, it stays where it stood
+    without the wall."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.keypoints import BODY
+    from prox_engine.scale_search import STANDING_PARTS, best_scale, standing_legs
+    from prox_engine.synthetic import look_at
+
+    with torch.no_grad():
+        out = body(body.init_params(1))  # faces -y, back toward +y
+    lift = torch.tensor([0.0, 0.0, float(out.vertices[0, :, 2].min())])
+    world, joints = out.vertices[0] - lift, out.keypoints[0, BODY] - lift
+    back = float(world[body.scene_vertices, 1].max()) + 0.08
+    floor = plane_mesh(size=10.0)
+    wall = trimesh.Trimesh([[-5, back, 0], [5, back, 0], [5, back, 3], [-5, back, 3]],
+                           [[0, 1, 2], [0, 2, 3]], process=False).subdivide_to_size(0.25)
+    cam2world = look_at(np.array([0.8, -3.0, 1.5]), np.array([0.0, 0.0, 1.0]))
+    names = list(body.contact_parts)
+    parts = [body.contact_parts[p] for p in names]
+    feet = torch.tensor([p in STANDING_PARTS for p in names])
+    scales = {}
+    for room, mesh in (("bare", floor), ("wall", trimesh.util.concatenate([floor, wall]))):
+        scene = _seen_scene(mesh, cam2world, dim=128)
+        camera = _in_camera(world, cam2world)[None]
+        standing = standing_legs(_in_camera(joints, cam2world)[None], torch.ones(1, 25),
+                                 scene.up_in_camera())
+        assert standing.tolist() == [True]
+        for counted, (who, mask) in enumerate((("all", None), ("feet", feet))):
+            scales[room, who], _ = best_scale(
+                camera, vertex_normals(camera, body.faces), body.scene_vertices,
+                _carrying(body), parts, scene, True, True, rho=0.05, max_angle_deg=45,
+                max_distance=0.15, standing=standing if counted else None,
+                standing_parts=mask)
+    assert abs(float(scales["wall", "feet"] - scales["bare", "feet"])) < 1e-6
+    assert abs(float(scales["wall", "feet"]) - 1.0) < 0.01
+    assert float(scales["wall", "all"] - scales["wall", "feet"]) > 0.01
+
+
+def test_standing_legs_hang_plumb_in_any_camera_frame():
+    """Standing: every thigh and shin within 30 degrees of world down, read in a camera
+    frame whose axes are not the world's (up along its -y turned 40 degrees about x), on
+    legs the detector did not report hidden; a seated body's horizontal thighs, a lying
+    body's legs and plumb legs with a knee it reports hidden are not standing."""
+    from prox_engine.keypoints import HIPS, KNEES, SHINS
+    from prox_engine.scale_search import standing_legs
+
+    turn = torch.tensor(trimesh.transformations.rotation_matrix(
+        np.radians(40), [1, 0, 0])[:3, :3], dtype=torch.float32)
+    up = turn @ torch.tensor([0.0, -1.0, 0.0])
+    forward = turn @ torch.tensor([0.0, 0.0, 1.0])
+
+    def legs(thigh: torch.Tensor, shin: torch.Tensor, knee_seen: float = 0.9
+             ) -> torch.Tensor:
+        keypoints = torch.zeros(1, 25, 3)
+        for side, (hip, (knee, foot)) in enumerate(zip(HIPS, SHINS)):
+            keypoints[0, hip] = torch.tensor([0.2 * side, 0.0, 3.0])
+            keypoints[0, knee] = keypoints[0, hip] + 0.45 * thigh
+            keypoints[0, foot[0]] = keypoints[0, knee] + 0.45 * shin
+        detected = torch.full((1, 25), 0.9)
+        detected[0, KNEES[1]] = knee_seen
+        return standing_legs(keypoints, detected, up)
+
+    tilted = (-up + 0.4 * forward) / (-up + 0.4 * forward).norm()  # 22 degrees off plumb
+    assert legs(-up, -up).tolist() == [True]
+    assert legs(tilted, -up).tolist() == [True]
+    assert legs(forward, -up).tolist() == [False]  # seated
+    assert legs(forward, forward).tolist() == [False]  # lying
+    assert legs(up, up).tolist() == [False]  # upside down
+    assert legs(-up, -up, knee_seen=0.2).tolist() == [False]  # a guessed leg
+
+
 def test_scale_search_keeps_a_seated_body_before_a_sofa_back(body):
     """A correctly placed seated body (buttocks on the seat, feet on the floor) with the
     sofa's back 20 cm behind its own keeps its scale within 2 %: moving it back would
