@@ -531,8 +531,8 @@ def test_scale_search_keeps_a_body_standing_before_a_wall(body):
 def test_scale_search_counts_only_the_feet_of_a_standing_body(body):
     """A correctly placed standing body with a wall 8 cm behind its back: counting every
     contact part, the search moves it 1-2 % farther, toward the wall (the back and hands
-    reach for it); counting only the feet of a standing body, it stays where it stood
-    without the wall."""
+    reach for it); counting only the feet of a standing body (the other parts as
+    missing), it stays where it stood without the wall."""
     from prox_engine.geometry import vertex_normals
     from prox_engine.keypoints import BODY
     from prox_engine.scale_search import STANDING_PARTS, best_scale, standing_legs
