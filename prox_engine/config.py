@@ -46,7 +46,7 @@ class FitConfig:
     scale_faint_legs: bool = True
     # ... and counts a body through a thin surface by its axis (see scale_search.AXIS_WEIGHT)
     scale_axes: bool = True
-    # ... and counts only the feet's contact for a standing body (see
+    # ... and counts a standing body's contact parts but the feet as missing (see
     # scale_search.STANDING_PARTS)
     scale_standing_feet: bool = True
     # ... and does not count the toes as penetrating (see scale_search.TOE_REACH)

@@ -177,13 +177,14 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     3), points inside the body: its collision spheres' centres) do (AXIS_WEIGHT).
     ``vertices`` and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
-    per part, of which the others than ``standing_parts`` ((P,) bool) count as missing
-    for the ``standing`` ((B,) bool) bodies (:data:`STANDING_PARTS`). Returns (B,) scales and (B,) their costs without the size prior (0: every
-    part touches, nothing enters, the body rests on a surface): how well the body can meet
-    the scene at all, comparable between bodies fitted at different sizes. Scales that
-    cannot win are not evaluated (:func:`bounded_search`), nor those whose total (cost
-    and size prior) cannot go under the body's ``ceilings`` ((B,)): a body whose total
-    cannot returns one over its ceiling, or scale 1 and an infinite cost."""
+    per part, those not ``standing_parts`` ((P,) bool) counted as missing for the
+    ``standing`` ((B,) bool) bodies (:data:`STANDING_PARTS`). Returns (B,) scales and (B,)
+    their costs without the size prior (0: every part touches, nothing enters, the body
+    rests on a surface): how well the body can meet the scene at all, comparable between
+    bodies fitted at different sizes. Scales that cannot win are not evaluated
+    (:func:`bounded_search`), nor those whose total (cost and size prior) cannot go under
+    the body's ``ceilings`` ((B,)): a body whose total cannot returns one over its
+    ceiling, or scale 1 and an infinite cost."""
     prior = size_prior(SCALES)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     carrying = carrying[sampled]
