@@ -86,7 +86,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     from .contact_distance import ContactDistance
     from .geometry import VertexNormals
     from .inside_depth import InsideDepth
-    from .keypoint_terms import keypoint_data, plumb_shins, trunk_terms
+    from .keypoint_terms import posed_terms
     from .nearest_face import nearest_faces
     from .rigid_terms import rigid_fit
     from .sample_grid import SampleGrid
@@ -100,11 +100,10 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     params = {k: v.requires_grad_(True) for k, v in body.init_params(1).items()}
     out = body(params)  # skinning, bone chain and anchored keypoints, both ways
     up = torch.tensor([0.0, -1.0, 0.0])
-    (out.vertices.sum() + keypoint_data(out.keypoints, Camera(1.0, 1.0, 0.0, 0.0),
-                                        torch.zeros(1, out.keypoints.shape[1], 2),
-                                        torch.ones(1, out.keypoints.shape[1]), 1.0).sum()
-     + sum(trunk_terms(out.keypoints, up, 1.0, 1.0)).sum()
-     + plumb_shins(out.keypoints, up, torch.ones(1, 2, dtype=torch.bool)).sum()).backward()
+    (out.vertices.sum() + sum(posed_terms(  # every keypoint term: one kernel
+        out.keypoints, Camera(1.0, 1.0, 0.0, 0.0), torch.zeros(1, out.keypoints.shape[1], 2),
+        torch.ones(1, out.keypoints.shape[1]), 1.0, up, 1.0, 1.0, torch.ones(1, 2))).sum()
+     ).backward()
     one = torch.ones(1)
     rigid_fit(torch.zeros(1, 3), torch.ones(1, 3), torch.eye(3)[None], torch.zeros(1, 1, 3),
               Camera(1.0, 1.0, 0.0, 0.0), torch.zeros(1, 1, 2), one[None], one[None], one, one,

@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 from .trilinear import Trilinear, read_grid
-from .warp_launch import CpuKernel
+from .warp_launch import CpuKernel, rigid
 
 
 @wp.kernel
@@ -58,10 +58,8 @@ class ContactDistance:
 
     def __init__(self, camera: Trilinear, world: Trilinear, cam2world: torch.Tensor,
                  h: float) -> None:
-        rotation = cam2world[:3, :3].float()
         self._scene = (camera.grid, camera.linear, camera.offset, world.linear, world.offset,
-                       wp.mat33(*rotation.flatten().tolist()),
-                       wp.vec3(*cam2world[:3, 3].float().tolist()), float(h))
+                       *rigid(cam2world), float(h))
 
     @torch.no_grad()
     def __call__(self, points: torch.Tensor, normals: torch.Tensor, max_distance: float,

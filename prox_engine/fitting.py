@@ -22,7 +22,8 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LAB
                         side_swap, thighs_hidden)
 from .initialisation import best_start
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, size_prior,
-                           standing_legs, toe_vertices, unseen_feet_on_kneeling_legs)
+                           standing_counts, standing_legs, toe_vertices,
+                           unseen_feet_on_kneeling_legs)
 from .scene import Scene
 
 
@@ -723,8 +724,9 @@ class Fitter:
         seen = [joints[b, seen[b]] for b in range(len(joints))]
         faint = [joints[b, faint[b]] for b in range(len(joints))]
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
-        standing = (standing_legs(joints, detected, self.scene.up_in_camera())
-                    if bool(self.standing_parts.any()) and cfg.scale_standing_feet else None)
+        counted = (standing_counts(standing_legs(joints, detected, self.scene.up_in_camera()),
+                                   self.standing_parts)
+                   if bool(self.standing_parts.any()) and cfg.scale_standing_feet else None)
 
         def search(rows: torch.Tensor, ceilings: torch.Tensor | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -735,8 +737,7 @@ class Fitter:
                               [seen[r] for r in rows] if cfg.scale_visibility else None,
                               self.toes, None if axes is None else axes[rows],
                               [faint[r] for r in rows] if cfg.scale_faint_legs else None,
-                              ceilings, None if standing is None else standing[rows],
-                              self.standing_parts)
+                              ceilings, None if counted is None else counted[rows])
         return search
 
     def _faint_legs(self, detected: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:

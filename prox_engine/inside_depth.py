@@ -16,7 +16,7 @@ import warp as wp
 from .nearest_face import FacesK, nearest_face
 from .sample_grid import MAX_K, RINGS, SampleGrid, k_nearest
 from .trilinear import Trilinear, blend_reach, read_grid
-from .warp_launch import CpuKernel
+from .warp_launch import CpuKernel, rigid
 
 
 @wp.kernel
@@ -70,10 +70,7 @@ class InsideDepth:
                  k: int) -> None:
         if not 0 < k <= MAX_K:
             raise ValueError(f"k = {k}: 1 to {MAX_K} nearest samples")
-        rotation = cam2world[:3, :3].float()
-        self._scene = (reader.grid, reader.linear, reader.offset,
-                       wp.mat33(*rotation.flatten().tolist()),
-                       wp.vec3(*cam2world[:3, 3].float().tolist()))
+        self._scene = (reader.grid, reader.linear, reader.offset, *rigid(cam2world))
         self._exact = (grid.samples, grid.starts, wp.vec3d(*grid.origin),
                        wp.float64(grid.cell), wp.vec3i(*grid.dims.tolist()), k, RINGS,
                        slot_face.contiguous(), triangles.contiguous(), normals.contiguous(),

@@ -126,6 +126,12 @@ def standing_legs(keypoints: torch.Tensor, detected: torch.Tensor, up: torch.Ten
     return seen & (torch.cat([thigh, shin], 1) < -math.cos(STANDING_LEG)).all(1)
 
 
+def standing_counts(standing: torch.Tensor, parts: torch.Tensor) -> torch.Tensor:
+    """(B, P) bool: the contact parts the search counts for each body: all of them, but
+    for the ``standing`` (B,) bool bodies only ``parts`` (P,) bool (:data:`STANDING_PARTS`)."""
+    return parts[None] | ~standing[:, None]
+
+
 def unseen_feet_on_kneeling_legs(keypoints: torch.Tensor, seen: torch.Tensor,
                                  up: torch.Tensor) -> torch.Tensor:
     """(B, 2) bool, per leg (right, left): neither of the foot's toes clearly seen
@@ -163,9 +169,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                seen_joints: list[torch.Tensor] | None = None,
                toes: torch.Tensor | None = None, axes: torch.Tensor | None = None,
                faint_joints: list[torch.Tensor] | None = None,
-               ceilings: torch.Tensor | None = None, standing: torch.Tensor | None = None,
-               standing_parts: torch.Tensor | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+               ceilings: torch.Tensor | None = None,
+               counted_parts: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
@@ -177,8 +182,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     3), points inside the body: its collision spheres' centres) do (AXIS_WEIGHT).
     ``vertices`` and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
-    per part, those not ``standing_parts`` ((P,) bool) counted as missing for the
-    ``standing`` ((B,) bool) bodies (:data:`STANDING_PARTS`). Returns (B,) scales and (B,)
+    per part, of which a body counts those ``counted_parts`` ((B, P) bool;
+    :func:`standing_counts`) and the others as missing. Returns (B,) scales and (B,)
     their costs without the size prior (0: every part touches, nothing enters, the body
     rests on a surface): how well the body can meet the scene at all, comparable between
     bodies fitted at different sizes. Scales that cannot win are not evaluated
@@ -215,8 +220,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                     max_distance)
                 misses = torch.stack([_miss(d, n, rho) for d, n in zip(
                     dist.split(part_sizes, 1), near.split(part_sizes, 1))])
-                if standing is not None and bool(standing[b]):  # the others all missed
-                    misses = torch.where(standing_parts[:, None], misses, 1.0)
+                if counted_parts is not None:
+                    misses = torch.where(counted_parts[b, :, None], misses, 1.0)
                 cost = cost + misses.mean(0)
             if use_support:
                 cost = cost + SUPPORT_WEIGHT * _unsupported(

@@ -17,6 +17,7 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
+import torch
 import warp as wp
 
 from .assets import configure_warp
@@ -61,6 +62,12 @@ class CpuKernel:
                     a, dtype=d, requires_grad=False, return_ctype=True))
             recorded.keys[i] = key
         command.launch()
+
+
+def rigid(frame: torch.Tensor) -> tuple[wp.mat33, wp.vec3]:
+    """A rigid transform ``frame`` (4, 4) as a kernel reads it: rotation and shift."""
+    return (wp.mat33(*frame[:3, :3].float().flatten().tolist()),
+            wp.vec3(*frame[:3, 3].float().tolist()))
 
 
 def _value_key(value: Any) -> tuple:

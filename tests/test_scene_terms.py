@@ -535,7 +535,8 @@ def test_scale_search_counts_only_the_feet_of_a_standing_body(body):
     missing), it stays where it stood without the wall."""
     from prox_engine.geometry import vertex_normals
     from prox_engine.keypoints import BODY
-    from prox_engine.scale_search import STANDING_PARTS, best_scale, standing_legs
+    from prox_engine.scale_search import (STANDING_PARTS, best_scale, standing_counts,
+                                          standing_legs)
     from prox_engine.synthetic import look_at
 
     with torch.no_grad():
@@ -557,12 +558,12 @@ def test_scale_search_counts_only_the_feet_of_a_standing_body(body):
         standing = standing_legs(_in_camera(joints, cam2world)[None], torch.ones(1, 25),
                                  scene.up_in_camera())
         assert standing.tolist() == [True]
-        for counted, (who, mask) in enumerate((("all", None), ("feet", feet))):
+        for counted, who in enumerate(("all", "feet")):
             scales[room, who], _ = best_scale(
                 camera, vertex_normals(camera, body.faces), body.scene_vertices,
                 _carrying(body), parts, scene, True, True, rho=0.05, max_angle_deg=45,
-                max_distance=0.15, standing=standing if counted else None,
-                standing_parts=mask)
+                max_distance=0.15,
+                counted_parts=standing_counts(standing, feet) if counted else None)
     assert abs(float(scales["wall", "feet"] - scales["bare", "feet"])) < 1e-6
     assert abs(float(scales["wall", "feet"]) - 1.0) < 0.01
     assert float(scales["wall", "all"] - scales["wall", "feet"]) > 0.01
