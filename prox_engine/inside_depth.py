@@ -30,12 +30,14 @@ def _inside(points: wp.array(dtype=wp.vec3), grid: wp.array3d(dtype=wp.float32),
             slope: wp.array(dtype=wp.vec3), left: wp.array(dtype=wp.int32)):
     i = wp.tid()
     p = points[i]
-    value, gradient = read_grid(grid, linear, offset, p, 1)
+    value, gradient = read_grid(grid, linear, offset, p, 0)
     left[i] = 0
-    if value > low and (value < 0.0 or value < wp.min(high, blend_reach(grid, linear, offset,
-                                                                          p))):
+    sure = int(0)
+    near = value < 0.0
+    if value >= 0.0 and value < high:  # the blend's reach only where it can decide
+        near = value < blend_reach(grid, linear, offset, p)
+    if value > low and near:
         world = wp.vec3d(rotation * p + shift)
-        sure = int(0)
         if wp.isfinite(world):
             index, best, sure = k_nearest(world, samples, starts, origin, cell, dims, k, rings)
             if sure != 0:
@@ -49,6 +51,8 @@ def _inside(points: wp.array(dtype=wp.vec3), grid: wp.array3d(dtype=wp.float32),
                 gradient = wp.transpose(rotation) * wp.vec3(d / exact)
         if sure == 0:
             left[i] = 1
+    if value < 0.0 and sure == 0:  # the grid's own reading stands: its gradient too
+        value, gradient = read_grid(grid, linear, offset, p, 1)
     depth[i] = wp.where(value < 0.0, -value, value * 0.0)  # NaN stays NaN
     slope[i] = wp.where(value < 0.0, -gradient, wp.vec3(0.0, 0.0, 0.0))
 
