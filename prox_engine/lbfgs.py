@@ -16,6 +16,7 @@ keypoint evaluation's time went into the optimiser around it.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from itertools import accumulate
 from typing import Callable, Generator
 
@@ -25,6 +26,15 @@ from scipy.linalg.lapack import dtrtrs
 
 # Evaluates the model at the variables' current values and returns each group's loss.
 Objective = Callable[[], Callable[[slice], torch.Tensor]]
+
+
+class Direct(ABC):
+    """An objective that works out its gradient itself, without autograd."""
+
+    @abstractmethod
+    def evaluate(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """At the variables' current values: each row's loss (B,) and the gradient of
+        their sum in each variable (its shape)."""
 # A coroutine yields the flat point (float64) it wants evaluated and is sent (loss,
 # gradient) there, or None when the evaluation failed (a non-finite point some term
 # rejects).
@@ -46,10 +56,11 @@ def sized_groups(sizes: list[int]) -> list[slice]:
     return [slice(end - size, end) for size, end in zip(sizes, accumulate(sizes))]
 
 
-def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
-             max_iter: int, max_calls: int = 1, ftol: float | None = None,
-             history: int = 20) -> list[bool]:
-    """Minimise each group's loss, ``objective()(rows)``, over its ``rows`` of
+def minimise(variables: list[torch.Tensor], objective: Objective | Direct,
+             groups: list[slice], max_iter: int, max_calls: int = 1,
+             ftol: float | None = None, history: int = 20) -> list[bool]:
+    """Minimise each group's loss, ``objective()(rows)`` (a :class:`Direct` one: its rows'
+    sum of ``objective.evaluate()``), over its ``rows`` of
     ``variables`` (leaf tensors (B, ...); a group's loss must depend on its rows only), in
     place.
 
@@ -58,7 +69,8 @@ def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[s
     by at most ``ftol`` times itself (at least 1). A call that fails or ends on non-finite
     values is undone and ends the group's minimisation. Returns, per group, whether that
     happened."""
-    coroutines = [_calls(_flat(variables, rows), max_iter, max_calls, ftol, history)
+    values = [v.detach().numpy() for v in variables]
+    coroutines = [_calls(_flat(values, rows), max_iter, max_calls, ftol, history)
                   for rows in groups]
     asked = {i: next(c) for i, c in enumerate(coroutines)}
     resting = dict(asked)  # each group's rows hold a point evaluated without failing
@@ -75,8 +87,8 @@ def minimise(variables: list[torch.Tensor], objective: Objective, groups: list[s
     return failed
 
 
-def _evaluate(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
-              asked: dict[int, np.ndarray], resting: dict[int, np.ndarray]
+def _evaluate(variables: list[torch.Tensor], objective: Objective | Direct,
+              groups: list[slice], asked: dict[int, np.ndarray], resting: dict[int, np.ndarray]
               ) -> dict[int, Evaluation]:
     """Each asking group's loss and flat gradient at its point, in one evaluation; its rows
     then rest there (``resting``: every running group asks each round, so no group's rows
@@ -96,8 +108,8 @@ def _evaluate(variables: list[torch.Tensor], objective: Objective, groups: list[
     return answers
 
 
-def _answers(variables: list[torch.Tensor], objective: Objective, groups: list[slice],
-             points: dict[int, np.ndarray], resting: dict[int, np.ndarray]
+def _answers(variables: list[torch.Tensor], objective: Objective | Direct,
+             groups: list[slice], points: dict[int, np.ndarray], resting: dict[int, np.ndarray]
              ) -> dict[int, tuple[float, np.ndarray]]:
     """Loss and flat gradient of the groups at ``points``, where their rows then rest;
     if the evaluation raises, they are put back to their ``resting`` points first."""
@@ -106,24 +118,29 @@ def _answers(variables: list[torch.Tensor], objective: Objective, groups: list[s
     for i, x in points.items():
         _assign(variables, groups[i], x)
     try:
-        with torch.enable_grad():
-            loss_of = objective()
-            losses = {i: loss_of(groups[i]) for i in points}
-            grads = torch.autograd.grad(sum(losses.values()), variables, allow_unused=True)
+        if isinstance(objective, Direct):
+            rows, grads = objective.evaluate()
+            losses = {i: float(rows[groups[i]].sum()) for i in points}
+        else:
+            with torch.enable_grad():
+                loss_of = objective()
+                found = {i: loss_of(groups[i]) for i in points}
+                grads = torch.autograd.grad(sum(found.values()), variables, allow_unused=True)
+            losses = {i: float(loss.detach()) for i, loss in found.items()}
+            grads = [np.zeros(v.shape, np.float32) if g is None else g.numpy()
+                     for g, v in zip(grads, variables)]
     except BaseException:
         for i in points:
             _assign(variables, groups[i], resting[i])
         raise
     resting.update(points)
-    grads = [g if g is not None else torch.zeros_like(v) for g, v in zip(grads, variables)]
-    return {i: (float(loss.detach()), _flat(grads, groups[i])) for i, loss in losses.items()}
+    return {i: (loss, _flat(grads, groups[i])) for i, loss in losses.items()}
 
 
-def _flat(tensors: list[torch.Tensor], rows: slice) -> np.ndarray:
-    """A group's rows of ``tensors`` (its parameters or their gradients) as torch's
-    L-BFGS flattens them, variable by variable, in float64."""
-    return np.concatenate([t.detach().numpy()[rows].reshape(-1) for t in tensors]
-                          ).astype(np.float64)
+def _flat(arrays: list[np.ndarray], rows: slice) -> np.ndarray:
+    """A group's rows of ``arrays`` (its parameters or their gradients) as torch's L-BFGS
+    flattens them, variable by variable, in float64."""
+    return np.concatenate([a[rows].reshape(-1) for a in arrays]).astype(np.float64)
 
 
 def _assign(variables: list[torch.Tensor], rows: slice, point: np.ndarray) -> None:

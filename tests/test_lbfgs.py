@@ -1,4 +1,5 @@
 """Several L-BFGS problems stepped in lockstep: each group of rows as if alone."""
+import numpy as np
 import torch
 
 from prox_engine import lbfgs
@@ -61,6 +62,32 @@ def test_each_group_is_minimised_as_if_alone():
     assert not torch.allclose(_torch(START, STIFFNESS, 5)[0], together[0], atol=1e-3)
     done = _lockstep(START, STIFFNESS, [slice(i, i + 1) for i in range(3)], 100, 3)
     assert torch.allclose(done, torch.ones(3, 2, dtype=torch.float64), atol=1e-5)
+
+
+class _DirectRosenbrock(lbfgs.Direct):
+    """:func:`_rosenbrock` with its gradient in closed form, on ``x``'s memory."""
+
+    def __init__(self, x: torch.Tensor, stiffness: torch.Tensor) -> None:
+        self.x, self.stiffness = x.detach().numpy(), stiffness.numpy()
+
+    def evaluate(self):
+        a, b = self.x[:, 0], self.x[:, 1]
+        bend = b - a ** 2
+        gradient = np.stack([-2 * (1 - a) - 4 * self.stiffness * bend * a,
+                             2 * self.stiffness * bend], 1)
+        return (1 - a) ** 2 + self.stiffness * bend ** 2, [gradient]
+
+
+def test_a_direct_objective_takes_the_autograd_objectives_steps():
+    """An objective that works out its own gradient (:class:`lbfgs.Direct`) is minimised
+    as the same objective through autograd, group by group."""
+    groups = [slice(0, 1), slice(1, 3)]
+    x = START.clone().requires_grad_(True)
+    lbfgs.minimise([x], _DirectRosenbrock(x, STIFFNESS), groups, 8, 2, ftol=1e-9)
+    expected = torch.cat([_lockstep(START[g], STIFFNESS[g], [slice(0, g.stop - g.start)], 8, 2)
+                          for g in groups])
+    torch.testing.assert_close(x.detach(), expected, rtol=1e-12, atol=1e-12)
+    assert not torch.allclose(x.detach(), START)
 
 
 def test_a_failed_call_is_undone_for_its_group_only():
