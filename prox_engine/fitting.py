@@ -21,6 +21,7 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LAB
                         LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, cut_legs,
                         side_swap, thighs_hidden)
 from .initialisation import best_start
+from .keypoint_objective import KeypointObjective
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, size_prior,
                            standing_counts, standing_legs, toe_vertices,
                            unseen_feet_on_kneeling_legs)
@@ -54,6 +55,9 @@ SCENE_GUARD_FLOOR = 1000.0
 # and stages with the scene terms alone pose only the vertices those read.
 SCENE_TERMS = ("penetration", "contact")
 MESH_TERMS = (*SCENE_TERMS, "depth")
+# Terms that read more of the body than its keypoints and pose (the mesh, the collision
+# spheres) or the previous frame's fit: a stage with any goes through autograd.
+GRAPH_TERMS = (*MESH_TERMS, "self_penetration", "temporal")
 # Priors that measure how far a posture is from the model's rest pose, which the start
 # choice may leave out (FitConfig.start_choice_priors).
 POSTURE_PRIORS = ("pose_prior", "bending")
@@ -106,6 +110,21 @@ class _Choice:
     priors: bool = True
     arms: bool = True
     feet_left_out: torch.Tensor | None = None
+
+
+@dataclass
+class _Held:
+    """What stays put while a stage runs (:meth:`Fitter._held`): the keypoints' weights
+    (B, K), the upright term's per frame (B,; 0 where no ankle is seen), the legs cut off
+    ((B, 2) float; None: none), the weighted priors (name -> weight, prior, parameters it
+    reads) and the values of those of them that read no free parameter (the shape of a
+    warm-started frame)."""
+
+    weights: torch.Tensor
+    upright: torch.Tensor
+    cut: torch.Tensor | None
+    priors: dict[str, tuple[float, Callable[[Params], torch.Tensor], list[str]]]
+    fixed: dict[str, torch.Tensor]
 
 
 @dataclass
@@ -243,7 +262,10 @@ class Fitter:
 
     def _count(self, _module: torch.nn.Module, inputs: tuple) -> None:
         """Forward pre-hook: body rows evaluated (a batch of B bodies counts B)."""
-        self.evaluations += len(inputs[0]["transl"])
+        self._counted(len(inputs[0]["transl"]))
+
+    def _counted(self, rows: int) -> None:
+        self.evaluations += rows
 
     def _fit(self, frames: list[Frame], warm_start: Params | None,
              previous_keypoints: torch.Tensor | None, start: int | None
@@ -595,19 +617,11 @@ class Fitter:
                                             self._keypoint_weights(stage, conf),
                                             self.config.data_rho)
 
-    def _terms(self, stage: Stage, params: Params, target: torch.Tensor, conf: torch.Tensor,
-               depth: list, previous: torch.Tensor | None, free: Sequence[str] = ()
-               ) -> Callable[[BodyOutput], dict[str, torch.Tensor]]:
-        """The weighted value (B,) of every active term of a stage, as a function of the
-        posed body (``params``). What stays put while the stage runs is worked out here,
-        once: the keypoints' weights, which frames see an ankle, which legs are cut off,
-        and the priors of parameters not ``free`` (a warm-started frame's shape)."""
-        w = stage.weights
-        cfg, body = self.config, self.body
-        weights = self._keypoint_weights(stage, conf)
-        upright = cfg.upright_weight * ankle_seen(conf)
+    def _held(self, stage: Stage, params: Params, conf: torch.Tensor, free: Sequence[str]
+              ) -> _Held:
+        """What stays put while a stage runs (:class:`_Held`)."""
+        w, cfg, body = stage.weights, self.config, self.body
         legs = cut_legs(conf)
-        cut = legs.float() if bool(legs.any()) else None  # no cut leg: the shins' term is 0
         priors = {"pose_prior": (body.pose_prior, body.pose_group()),
                   "shape": (body.shape_prior, body.shape_group()),
                   "bending": (body.bending_prior, body.pose_group()),
@@ -617,17 +631,31 @@ class Fitter:
         with torch.no_grad():
             fixed = {name: weight * prior(params) for name, (weight, prior, reads)
                      in priors.items() if not set(reads) & set(free)}
+        return _Held(weights=self._keypoint_weights(stage, conf),
+                     upright=cfg.upright_weight * ankle_seen(conf),
+                     cut=legs.float() if bool(legs.any()) else None,  # None: the shins' 0
+                     priors=priors, fixed=fixed)
+
+    def _terms(self, stage: Stage, params: Params, target: torch.Tensor, conf: torch.Tensor,
+               depth: list, previous: torch.Tensor | None, free: Sequence[str] = ()
+               ) -> Callable[[BodyOutput], dict[str, torch.Tensor]]:
+        """The weighted value (B,) of every active term of a stage, as a function of the
+        posed body (``params``)."""
+        w = stage.weights
+        cfg, body = self.config, self.body
+        held = self._held(stage, params, conf, free)
 
         def terms(out: BodyOutput) -> dict[str, torch.Tensor]:
             data, standing, lying, plumb = keypoint_terms.posed_terms(
-                out.keypoints, self.camera, target, weights, cfg.data_rho, self.up,
-                cfg.upright_rho, cfg.level_rho, cut)  # one kernel for the four
+                out.keypoints, self.camera, target, held.weights, cfg.data_rho, self.up,
+                cfg.upright_rho, cfg.level_rho, held.cut)  # one kernel for the four
             values = {"data": data,
                       "joint_limits": cfg.joint_limit_weight * body.joint_limits(params)}
-            for name, (weight, prior, _) in priors.items():
-                values[name] = fixed[name] if name in fixed else weight * prior(params)
+            for name, (weight, prior, _) in held.priors.items():
+                values[name] = (held.fixed[name] if name in held.fixed
+                                else weight * prior(params))
             if cfg.upright_weight > 0:
-                values["upright"] = upright * standing
+                values["upright"] = held.upright * standing
             if cfg.level_weight > 0:
                 values["level"] = cfg.level_weight * lying
             if cfg.plumb_shin_weight > 0:
@@ -651,6 +679,37 @@ class Fitter:
             return values
         return terms
 
+    def _keypoint_objective(self, stage: Stage, params: Params, free: list[str],
+                            target: torch.Tensor, conf: torch.Tensor
+                            ) -> KeypointObjective | None:
+        """The objective of a stage that reads only the keypoints and the pose, the shape
+        held, worked out without autograd (:mod:`keypoint_objective`); None for any other
+        stage, or a body model without a :meth:`BodyModel.keypoint_path`."""
+        if (any(stage.weights.get(t, 0) > 0 for t in GRAPH_TERMS)
+                or set(free) & set(self.body.shape_group())):
+            return None
+        path = self.body.keypoint_path(params)
+        if path is None:
+            return None
+        cfg = self.config
+        held = self._held(stage, params, conf, free)
+        columns = torch.stack([torch.ones_like(held.upright),
+                               held.upright * (cfg.upright_weight > 0),
+                               torch.full_like(held.upright, max(cfg.level_weight, 0)),
+                               torch.full_like(held.upright, max(cfg.plumb_shin_weight, 0))], 1)
+        priors = {"joint_limits": cfg.joint_limit_weight} | {
+            name: weight for name, (weight, _, _) in held.priors.items()
+            if name not in held.fixed}
+        fixed = sum(held.fixed.values(), torch.zeros(len(columns)))
+
+        def posed(keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return keypoint_terms.posed_values(keypoints, self.camera, target, held.weights,
+                                               cfg.data_rho, self.up, cfg.upright_rho,
+                                               cfg.level_rho, held.cut)
+
+        return KeypointObjective(path, free, posed, columns.float().numpy(), priors,
+                                 fixed.float().numpy(), self._counted)
+
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
                    conf: torch.Tensor, depth: list, previous: torch.Tensor | None,
                    groups: list[slice]) -> dict[str, torch.Tensor]:
@@ -670,10 +729,11 @@ class Fitter:
             total = torch.stack(list(terms().values())).sum(0)
             return lambda rows: total[rows].sum()
 
+        direct = self._keypoint_objective(stage, params, free, target, conf)
         expanded = (self.body.shape_expanded(params, mesh)
                     if set(self.body.shape_group()) & set(free) else nullcontext())
         with expanded:
-            self._minimise([params[n] for n in free], objective, stage.name, groups,
+            self._minimise([params[n] for n in free], direct or objective, stage.name, groups,
                            stage.max_iter, stage.max_calls or self.config.max_calls,
                            self.config.ftol)
         with torch.no_grad():
@@ -799,7 +859,8 @@ class Fitter:
             self._minimise([params[n] for n in ["transl", "global_orient",
                                                 *body.shape_group()]], objective, "rescale", moved)
 
-    def _minimise(self, variables: list[torch.Tensor], objective: lbfgs.Objective,
+    def _minimise(self, variables: list[torch.Tensor],
+                  objective: lbfgs.Objective | lbfgs.Direct,
                   step: str, groups: list[slice], max_iter: int | None = None,
                   max_calls: int = 1, ftol: float | None = None) -> None:
         """L-BFGS on ``variables``, in place, each group of rows (a frame's) on its own

@@ -232,10 +232,20 @@ def posed_terms(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
     (B,)) in one launch and one autograd node: a keypoint stage's evaluation paid some 25
     us forward and back for each term's own. ``cut`` None: no leg is cut (the shins' term
     0, nothing computed)."""
-    value, gradient = _launch(keypoints, (0, 1, -1 if cut is None else 3), 4, camera=camera,
-                              target=target, weight=weight, rho=rho, up=up,
-                              upright_rho=upright_rho, level_rho=level_rho, cut=cut)
+    value, gradient = posed_values(keypoints, camera, target, weight, rho, up, upright_rho,
+                                   level_rho, cut)
     return with_gradient(keypoints, value, gradient).unbind(1)
+
+
+def posed_values(keypoints: torch.Tensor, camera: Camera, target: torch.Tensor,
+                 weight: torch.Tensor, rho: float, up: torch.Tensor, upright_rho: float,
+                 level_rho: float, cut: torch.Tensor | None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`posed_terms`' four values (B, 4) and their gradients in the keypoints (B, 4,
+    K, 3), without autograd."""
+    return _launch(keypoints, (0, 1, -1 if cut is None else 3), 4, camera=camera,
+                   target=target, weight=weight, rho=rho, up=up, upright_rho=upright_rho,
+                   level_rho=level_rho, cut=cut)
 
 
 def _launch(keypoints: torch.Tensor, columns: tuple[int, int, int], count: int,

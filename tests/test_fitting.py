@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +15,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from prox_engine import lbfgs, scene_sdf
+from prox_engine.body.anny_keypoints import AnnyKeypointPath
 from prox_engine.body.base import BodyOutput
 from prox_engine.camera import Camera
 from prox_engine.config import FitConfig, Stage, load_config
@@ -569,22 +572,43 @@ def test_a_fit_with_the_legs_swapped_far_from_its_keypoints_is_checked(body):
         assert not any("fitted again as detected" in e for e in alone.events)
 
 
-def test_body_evaluations_are_counted_per_stage_and_frame(body):
+@contextmanager
+def _witness(body, monkeypatch) -> Iterator[list[int]]:
+    """The body rows evaluated, as a hook on the body and on its keypoint path see them
+    (a batch of B counts B)."""
+    rows: list[int] = []
+    pose = AnnyKeypointPath.pose
+
+    def posed(path: AnnyKeypointPath) -> torch.Tensor:
+        keypoints = pose(path)
+        rows.append(len(keypoints))
+        return keypoints
+
+    hook = body.register_forward_pre_hook(
+        lambda _m, inputs: rows.append(len(inputs[0]["transl"])))
+    try:
+        with monkeypatch.context() as patched:
+            patched.setattr(AnnyKeypointPath, "pose", posed)
+            yield rows
+    finally:
+        hook.remove()
+
+
+@pytest.mark.parametrize("shape_free", [True, False])
+def test_body_evaluations_are_counted_per_stage_and_frame(body, monkeypatch, shape_free):
     """The profile counts every body row evaluated (a batch of B counts B), per stage and
-    per frame, as an independent hook on the body sees them; and the hook is removed."""
+    per frame, as an independent hook on the body sees them, through autograd (shape
+    free) or not; and the hook is removed."""
     cam2world = tilted_camera()
-    config = FitConfig("short", [Stage("global", {"body": 1.0, "pose_prior": 30.0}),
-                                 Stage("body", {"body": 1.0, "pose_prior": 10.0})],
+    config = FitConfig("short", [Stage("global", {"body": 1.0, "pose_prior": 30.0},
+                                       optimize_shape=shape_free),
+                                 Stage("body", {"body": 1.0, "pose_prior": 10.0},
+                                       optimize_shape=shape_free)],
                        max_iter=5, max_calls=1, start_candidates=2, start_stages=1,
                        arm_restarts=False)
     frames = [frame_of(standing_person(body, cam2world, yaw)[1]) for yaw in (0.0, 0.7)]
-    rows = []
-    witness = body.register_forward_pre_hook(
-        lambda _m, inputs: rows.append(len(inputs[0]["transl"])))
-    try:
+    with _witness(body, monkeypatch) as rows:
         results = Fitter(body, CAMERA, config).fit(frames)
-    finally:
-        witness.remove()
     counted = results[0].stage_evaluations
     assert list(counted) == ["initialise", "global", "body", "output"]
     assert sum(counted.values()) * len(frames) == sum(rows) > 0
@@ -636,29 +660,24 @@ def test_priors_of_held_parameters_are_read_once_with_the_same_values(body):
         assert torch.equal(freed[name], held[name]), name
     assert freed["shape"].requires_grad and not held["shape"].requires_grad
 
-def test_stage_stops_after_the_call_that_settles(body):
+def test_stage_stops_after_the_call_that_settles(body, monkeypatch):
     """With a tolerance every change meets, a stage makes one L-BFGS call however many it
     may make: the loss before a call is compared with the loss after it (one evaluation
     more than a stage allowed a single call makes)."""
     cam2world = tilted_camera()
     _, keypoints = standing_person(body, cam2world)
     frame = frame_of(keypoints)
-    evaluations = []
-    hook = body.register_forward_hook(lambda *_: evaluations.append(1))
-    try:
-        counts = []
-        for calls in (1, 3):
-            stage = Stage("global", {"body": 1.0, "pose_prior": 30.0}, optimize_shape=False)
-            config = FitConfig("short", [stage], max_iter=4, max_calls=calls, ftol=1e9)
-            fitter = Fitter(body, CAMERA, config)
-            params, _ = fitter.initialise([frame])
-            target, conf = fitter._targets([frame])
-            evaluations.clear()
+    counts = []
+    for calls in (1, 3):
+        stage = Stage("global", {"body": 1.0, "pose_prior": 30.0}, optimize_shape=False)
+        config = FitConfig("short", [stage], max_iter=4, max_calls=calls, ftol=1e9)
+        fitter = Fitter(body, CAMERA, config)
+        params, _ = fitter.initialise([frame])
+        target, conf = fitter._targets([frame])
+        with _witness(body, monkeypatch) as evaluations:
             fitter._run_stage(stage, params, ["transl", "global_orient", "body_pose"], target,
                               conf, [None], None, lbfgs.row_groups(1, 1))
-            counts.append(len(evaluations))
-    finally:
-        hook.remove()
+        counts.append(len(evaluations))
     assert counts[1] == counts[0] + 1
 
 

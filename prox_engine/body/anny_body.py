@@ -25,8 +25,9 @@ from ..geometry import vertex_normals
 from ..keypoints import BODY, LEFT_HAND, N_KEYPOINTS, RIGHT_HAND
 from ..with_gradient import with_gradient
 from .anchored_points import AnchoredPoints
+from .anny_keypoints import AnnyKeypointPath
 from .anny_kinematics import AnnySkeleton
-from .base import BodyModel, BodyOutput, Params, VertexSubset, limit_excess
+from .base import BodyModel, BodyOutput, KeypointPath, Params, VertexSubset, limit_excess
 from .shape_prior import PhenotypePrior
 from .skinning import Binding, linear_blend_skinning
 
@@ -595,6 +596,9 @@ class AnnyBody(BodyModel):
         held = rest_poses[:, self.anchor_bone]
         offset = anchors - self.anchor_weight[:, None] * held[..., :3, 3]
         return (held[..., :3, :3].transpose(-1, -2) @ offset[..., None])[..., 0]
+
+    def keypoint_path(self, params: Params) -> KeypointPath:
+        return AnnyKeypointPath(self, params)
 
     def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
         """The vertices ``ids`` with their rest template, blendshapes and skinning weights

@@ -7,6 +7,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..with_gradient import with_gradient
@@ -31,6 +32,28 @@ class VertexSubset:
 
     ids: torch.Tensor
     data: dict[str, Any] = field(default_factory=dict)
+
+
+class KeypointPath(ABC):
+    """A batch of bodies' keypoints and posture priors with their gradients, worked out
+    without autograd on the current values of the parameters it was made for (their
+    memory, as the optimiser writes it), the shape held: what a keypoint stage reads
+    (:meth:`BodyModel.keypoint_path`). Buffers are reused: each result holds until the
+    next call."""
+
+    @abstractmethod
+    def pose(self) -> torch.Tensor:
+        """The keypoints (B, K, 3) float32, as :meth:`BodyModel.forward`'s."""
+
+    @abstractmethod
+    def gradients(self, keypoint_grad: torch.Tensor) -> dict[str, np.ndarray]:
+        """Per pose parameter, the gradient (float32, its shape) of a loss whose gradient
+        in the keypoints of the last :meth:`pose` is ``keypoint_grad`` (B, K, 3) float32."""
+
+    @abstractmethod
+    def priors(self) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
+        """``pose_prior``, ``joint_limits``, ``bending`` and ``hand_prior``, as the model's
+        own methods: each its value (B,) and its gradient in the parameters it reads."""
 
 
 class BodyModel(ABC, torch.nn.Module):
@@ -69,6 +92,12 @@ class BodyModel(ABC, torch.nn.Module):
         in one optimisation (a model whose shape is linear, or cheap, has nothing to
         gain)."""
         yield
+
+    def keypoint_path(self, params: Params) -> KeypointPath | None:
+        """The keypoints and posture priors of ``params`` (their shape held) with their
+        gradients, without autograd; None (the default): the model has none, and its
+        stages go through autograd."""
+        return None
 
     def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
         """The vertices ``ids`` prepared for :meth:`forward` (a model that cannot pose a

@@ -1,0 +1,48 @@
+"""A keypoint stage's objective with its gradient worked out directly, without autograd.
+
+The keypoint stages (global, body, detail, final: some 300 evaluations a frame) read the
+keypoints and the pose alone. Through autograd each evaluation built and walked a graph
+of some forty nodes, about 1 ms, most of it dispatch around the kernels. Here the body's
+keypoint path (:meth:`BodyModel.keypoint_path`) poses the keypoints in its own kernels,
+the keypoint terms' kernel gives their values and slopes (:func:`posed_values`), and the
+slopes go back through the path's kernels: the same sum as :meth:`Fitter._terms`' terms,
+term for term (tests/test_keypoint_objective.py)."""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from .body.base import KeypointPath
+from .lbfgs import Direct
+
+
+class KeypointObjective(Direct):
+    """Per row, the keypoint terms' four values (data, upright trunk, level trunk, plumb
+    shins, from ``posed``: keypoints -> values (B, 4) and slopes (B, 4, K, 3)) weighed by
+    ``columns`` (B, 4), plus the ``priors`` of the ``path`` (name -> weight), plus
+    ``fixed`` (B,): the terms that do not move in this stage. Gradients in the ``free``
+    parameters; ``count`` is told the rows of each evaluation."""
+
+    def __init__(self, path: KeypointPath, free: list[str],
+                 posed: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+                 columns: np.ndarray, priors: dict[str, float], fixed: np.ndarray,
+                 count: Callable[[int], None]) -> None:
+        self.path, self.free, self.posed = path, free, posed
+        self.columns, self.priors, self.fixed, self.count = columns, priors, fixed, count
+
+    def evaluate(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        keypoints = self.path.pose()
+        value, slope = self.posed(keypoints)
+        total = (value.numpy() * self.columns).sum(1) + self.fixed
+        keypoint_grad = np.einsum("bc,bckd->bkd", self.columns, slope.numpy())
+        grads = dict(self.path.gradients(torch.from_numpy(keypoint_grad)))
+        found = self.path.priors()
+        for name, weight in self.priors.items():
+            value, slopes = found[name]
+            total = total + weight * value
+            for param, gradient in slopes.items():
+                grads[param] = grads[param] + weight * gradient
+        self.count(len(total))
+        return total, [grads[name] for name in self.free]
