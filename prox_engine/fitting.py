@@ -21,11 +21,12 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LAB
                         LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, cut_legs,
                         side_swap, thighs_hidden)
 from .initialisation import best_start
-from .keypoint_objective import KeypointObjective
+from .keypoint_objective import KeypointObjective, goal_distance
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, size_prior,
                            standing_counts, standing_legs, toe_vertices,
                            unseen_feet_on_kneeling_legs)
 from .scene import Scene
+from .with_gradient import with_gradient
 
 
 # Leg restarts (FitConfig.leg_restarts): the least the ankle must move for a restart to
@@ -540,11 +541,21 @@ class Fitter:
         params = {k: v.repeat(len(turns), *[1] * (v.dim() - 1)) for k, v in rows.params.items()}
         goal = torch.cat([goals[i] for i in turns])
 
-        def objective() -> Callable[[slice], torch.Tensor]:
-            keypoints = body(params, vertices=False).keypoints[:, BODY]
-            cost = ((keypoints - goal) ** 2).sum((1, 2)) * 1e4 + (
-                self.config.joint_limit_weight * body.joint_limits(params))
-            return lambda r: cost[r].sum()
+        distance = goal_distance(goal, BODY, 1e4)
+        path = body.keypoint_path(params)
+        limits = self.config.joint_limit_weight
+        if path is not None:  # without autograd, as a keypoint stage
+            objective = KeypointObjective(path, body.pose_group(), distance,
+                                          np.ones((len(goal), 1), np.float32),
+                                          {"joint_limits": limits},
+                                          np.zeros(len(goal), np.float32), self._counted)
+        else:
+            def objective() -> Callable[[slice], torch.Tensor]:
+                keypoints = body(params, vertices=False, spheres=False).keypoints
+                value, slope = distance(keypoints)
+                cost = (with_gradient(keypoints, value[:, 0], slope[:, 0])
+                        + limits * body.joint_limits(params))
+                return lambda r: cost[r].sum()
 
         self._minimise([params[n] for n in body.pose_group()], objective, "leg restart",
                        lbfgs.row_groups(len(goal), len(goal)), max_iter=MIRROR_ITERATIONS)

@@ -46,3 +46,16 @@ class KeypointObjective(Direct):
                 grads[param] = grads[param] + weight * gradient
         self.count(len(total))
         return total, [grads[name] for name in self.free]
+
+
+def goal_distance(goal: torch.Tensor, points: slice, weight: float
+                  ) -> Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
+    """keypoints (B, K, 3) -> ``weight`` times the summed squared distance of the
+    keypoints ``points`` from ``goal`` (B, n, 3), (B, 1), and its slope in the keypoints
+    (B, 1, K, 3): a ``posed`` for :class:`KeypointObjective`."""
+    def posed(keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        off = keypoints[:, points] - goal
+        slope = torch.zeros(len(keypoints), 1, *keypoints.shape[1:])
+        slope[:, 0, points] = 2 * weight * off
+        return weight * off.square().sum((1, 2))[:, None], slope
+    return posed

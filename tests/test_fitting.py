@@ -820,15 +820,20 @@ def test_arm_restarts_bring_an_arm_seen_end_on_forward(body):
     assert float(error.max()) < 0.06, error
 
 
-def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_depth(body):
+@pytest.mark.parametrize("through_autograd", [False, True])
+def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_depth(
+        body, monkeypatch, through_autograd):
     """A seated body under a tilted, rolled, off-centre camera: each leg's restart turns
     the shin and foot about the knee until the ankle lies on the other point of its camera
     ray at the shin's length, so the ankle projects where it did (within 5 px) but lies
     where the geometry says in depth, the foot keeps its shape, and the rest of the body
-    stays put. A leg whose ankle the detector did not see gets no restart."""
+    stays put. A leg whose ankle the detector did not see gets no restart. Alike through
+    the body's keypoint path and, for a model without one, through autograd."""
     from prox_engine.fitting import _Rows
     from prox_engine.keypoints import SHINS
 
+    if through_autograd:
+        monkeypatch.setattr(body, "keypoint_path", lambda params: None)
     cam2world = tilted_camera()
     params = _posed_params(body, cam2world, "sitting")
     with torch.no_grad():
