@@ -266,6 +266,7 @@ class Fitter:
         self._counted(len(inputs[0]["transl"]))
 
     def _counted(self, rows: int) -> None:
+        """Body rows evaluated, by the forward's hook or by a keypoint path's objective."""
         self.evaluations += rows
 
     def _fit(self, frames: list[Frame], warm_start: Params | None,
