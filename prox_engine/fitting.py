@@ -649,13 +649,14 @@ class Fitter:
                      priors=priors, fixed=fixed)
 
     def _terms(self, stage: Stage, params: Params, target: torch.Tensor, conf: torch.Tensor,
-               depth: list, previous: torch.Tensor | None, free: Sequence[str] = ()
-               ) -> Callable[[BodyOutput], dict[str, torch.Tensor]]:
+               depth: list, previous: torch.Tensor | None, free: Sequence[str] = (),
+               held: _Held | None = None) -> Callable[[BodyOutput], dict[str, torch.Tensor]]:
         """The weighted value (B,) of every active term of a stage, as a function of the
-        posed body (``params``)."""
+        posed body (``params``), with what stays put while it runs (``held``, worked out
+        here if not given)."""
         w = stage.weights
         cfg, body = self.config, self.body
-        held = self._held(stage, params, conf, free)
+        held = held or self._held(stage, params, conf, free)
 
         def terms(out: BodyOutput) -> dict[str, torch.Tensor]:
             data, standing, lying, plumb = keypoint_terms.posed_terms(
@@ -692,11 +693,11 @@ class Fitter:
         return terms
 
     def _keypoint_objective(self, stage: Stage, params: Params, free: list[str],
-                            target: torch.Tensor, conf: torch.Tensor
-                            ) -> KeypointObjective | None:
+                            target: torch.Tensor, held: _Held) -> KeypointObjective | None:
         """The objective of a stage that reads only the keypoints and the pose, the shape
-        held, worked out without autograd (:mod:`keypoint_objective`); None for any other
-        stage, or a body model without a :meth:`BodyModel.keypoint_path`."""
+        held, worked out without autograd (:mod:`keypoint_objective`) with what stays put
+        while it runs (``held``); None for any other stage, or a body model without a
+        :meth:`BodyModel.keypoint_path`."""
         if (any(stage.weights.get(t, 0) > 0 for t in GRAPH_TERMS)
                 or set(free) & set(self.body.shape_group())):
             return None
@@ -704,7 +705,6 @@ class Fitter:
         if path is None:
             return None
         cfg = self.config
-        held = self._held(stage, params, conf, free)
         columns = torch.stack([torch.ones_like(held.upright),
                                held.upright * (cfg.upright_weight > 0),
                                torch.full_like(held.upright, max(cfg.level_weight, 0)),
@@ -730,7 +730,8 @@ class Fitter:
         search's last probes)."""
         mesh = self._mesh_read(stage)
         spheres = stage.weights.get("self_penetration", 0) > 0
-        terms_of = self._terms(stage, params, target, conf, depth, previous, free)
+        held = self._held(stage, params, conf, free)
+        terms_of = self._terms(stage, params, target, conf, depth, previous, free, held)
 
         def terms() -> dict[str, torch.Tensor]:
             return terms_of(self.body(params, vertices=mesh, spheres=spheres))
@@ -741,7 +742,7 @@ class Fitter:
             total = torch.stack(list(terms().values())).sum(0)
             return lambda rows: total[rows].sum()
 
-        direct = self._keypoint_objective(stage, params, free, target, conf)
+        direct = self._keypoint_objective(stage, params, free, target, held)
         expanded = (self.body.shape_expanded(params, mesh)
                     if set(self.body.shape_group()) & set(free) else nullcontext())
         with expanded:

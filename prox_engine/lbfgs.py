@@ -26,6 +26,11 @@ from scipy.linalg.lapack import dtrtrs
 
 # Evaluates the model at the variables' current values and returns each group's loss.
 Objective = Callable[[], Callable[[slice], torch.Tensor]]
+# A coroutine yields the flat point (float64) it wants evaluated and is sent (loss,
+# gradient) there, or None when the evaluation failed (a non-finite point some term
+# rejects).
+Evaluation = tuple[float, np.ndarray] | None
+Search = Generator[np.ndarray, Evaluation, tuple]
 
 
 class Direct(ABC):
@@ -35,11 +40,6 @@ class Direct(ABC):
     def evaluate(self) -> tuple[np.ndarray, list[np.ndarray]]:
         """At the variables' current values: each row's loss (B,) and the gradient of
         their sum in each variable (its shape)."""
-# A coroutine yields the flat point (float64) it wants evaluated and is sent (loss,
-# gradient) there, or None when the evaluation failed (a non-finite point some term
-# rejects).
-Evaluation = tuple[float, np.ndarray] | None
-Search = Generator[np.ndarray, Evaluation, tuple]
 
 
 class _Failed(Exception):

@@ -57,7 +57,8 @@ def test_the_direct_objective_is_the_autograd_objective(body):
     assert bool(conf[1, KNEES].gt(0).all())  # the second body's legs are cut off
     for name in FREE:
         params[name].requires_grad_(True)
-    direct = fitter._keypoint_objective(STAGE, params, FREE, target, conf)
+    direct = fitter._keypoint_objective(STAGE, params, FREE, target,
+                                        fitter._held(STAGE, params, conf, FREE))
     assert isinstance(direct, KeypointObjective)
     rows, grads = direct.evaluate()
 
@@ -84,5 +85,7 @@ def test_stages_that_read_more_than_keypoints_and_pose_go_through_autograd(body,
     free = [*FREE, "shape"] if term == "shape free" else FREE
     weights = dict(STAGE.weights) | ({} if term == "shape free" else {term: 1.0})
     stage = Stage("s", weights)
-    assert fitter._keypoint_objective(stage, params, free, target, conf) is None
-    assert fitter._keypoint_objective(STAGE, params, FREE, target, conf) is not None
+    assert fitter._keypoint_objective(stage, params, free, target,
+                                      fitter._held(stage, params, conf, free)) is None
+    assert fitter._keypoint_objective(STAGE, params, FREE, target,
+                                      fitter._held(STAGE, params, conf, FREE)) is not None
