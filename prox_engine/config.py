@@ -51,6 +51,8 @@ class FitConfig:
     scale_standing_feet: bool = True
     # ... and does not count the toes as penetrating (see scale_search.TOE_REACH)
     scale_free_toes: bool = True
+    # ... nor asks a kneeler's seen toes to be in view (see scale_search.TOE_REACH)
+    scale_free_toe_rays: bool = True
     # ... and searches the unseen feet of kneeling legs pointed along the shins (see
     # scale_search.FLAT_SHIN)
     point_unseen_feet: bool = True

@@ -22,8 +22,8 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LAB
                         side_swap, thighs_hidden)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
-from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, size_prior,
-                           standing_counts, standing_legs, toe_vertices,
+from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, kneelers_toes,
+                           size_prior, standing_counts, standing_legs, toe_vertices,
                            unseen_feet_on_kneeling_legs)
 from .scene import Scene
 from .with_gradient import with_gradient
@@ -794,6 +794,8 @@ class Fitter:
             normals = self.vertex_normals(vertices)
         joints = out.keypoints[:, BODY]
         seen, faint = detected > SEEN, self._faint_legs(detected, joints)
+        if cfg.scale_free_toe_rays:
+            seen &= ~kneelers_toes(joints, self.scene.up_in_camera())
         seen = [joints[b, seen[b]] for b in range(len(joints))]
         faint = [joints[b, faint[b]] for b in range(len(joints))]
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None

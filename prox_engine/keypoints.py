@@ -47,6 +47,7 @@ SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
 HIPS = [9, 12]  # right, left: where each leg of SHINS hangs from
 KNEES = [knee for knee, _ in SHINS]
 FEET = [j for _, foot in SHINS for j in foot]  # ankles, toes and heels
+TOES = [j for _, foot in SHINS for j in foot[1:3]]  # big and small toes
 # The limbs whose keypoints sequence mode checks one by one: shoulder, elbow and wrist; hip,
 # knee and ankle.
 LIMBS = {"right arm": (2, 3, 4), "left arm": (5, 6, 7), "right leg": (9, 10, 11),

@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import torch
 
-from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, SHINS
+from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, SHINS, TOES
 from .losses import contact_distances, gmof, part_vertices
 from .scene import Scene
 
@@ -52,9 +52,11 @@ CHUNK = 16
 STRIDE = 3
 # A foot's toes turn about its ankle, and the scene stages bend a foot out of a floor, but
 # they do not move the body along its rays: the toes' penetration (foot vertices more than
-# TOE_REACH from the ankle on the standing mean body) is not counted. A kneeler fitted with
-# the toes pointing down was otherwise shrunk toward the camera until they left the floor;
-# a seated body scaled too large still sinks its heels.
+# TOE_REACH from the ankle on the standing mean body) is not counted, nor, on a kneeler,
+# are the seen toes' keypoints asked to be in front of the scan. A kneeler fitted with the
+# toes pointing down was otherwise shrunk toward the camera until they left the floor
+# (seed 82's upright leg: seen toes 5-14 cm behind the floor, the body 5-7 % too near); a
+# seated body scaled too large still sinks its heels, and a walker placed too far its toes.
 TOE_REACH = 0.10
 # A scan registered to the camera 1-3 cm and a degree off, or a soft cushion, puts
 # correctly placed soles a few centimetres into the floor: shallower penetration is not
@@ -138,11 +140,25 @@ def unseen_feet_on_kneeling_legs(keypoints: torch.Tensor, seen: torch.Tensor,
     (``seen`` (B, 25); a seen heel does not turn the foot) and the leg kneeling (see
     :data:`FLAT_SHIN`) in the fitted BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in
     their frame."""
-    thigh, shin = _elevations(keypoints, up)
     toes = [foot[1:3] for _, foot in SHINS]  # a kneeler's heel points up, in view
     unseen = ~torch.stack([seen[:, pair].any(1) for pair in toes], 1)
-    return (unseen & (shin.abs() < math.sin(FLAT_SHIN))
-            & (thigh < -math.cos(KNEELING_THIGH)))
+    return unseen & kneeling_legs(keypoints, up)
+
+
+def kneelers_toes(keypoints: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """(B, 25) bool: the toes (keypoints.TOES) of the bodies with a kneeling leg (see
+    :data:`FLAT_SHIN`) in the fitted BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in
+    their frame: the scale search does not ask them to be in view (see :data:`TOE_REACH`)."""
+    toes = torch.zeros(keypoints.shape[:2], dtype=torch.bool)
+    toes[:, TOES] = True
+    return toes & kneeling_legs(keypoints, up).any(1, keepdim=True)
+
+
+def kneeling_legs(keypoints: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """(B, 2) bool, per leg (right, left): kneeling (see :data:`FLAT_SHIN`) in the fitted
+    BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in their frame."""
+    thigh, shin = _elevations(keypoints, up)
+    return (shin.abs() < math.sin(FLAT_SHIN)) & (thigh < -math.cos(KNEELING_THIGH))
 
 
 def toe_vertices(parts: list[str], rest: torch.Tensor, ankles: torch.Tensor) -> torch.Tensor:

@@ -1270,8 +1270,8 @@ def test_unseen_feet_are_pointed_only_on_kneeling_legs(body):
     """Under tilted, rolled cameras: a kneeler's foot whose toes the detector did not see
     is pointed, its heel seen or not, a seen one is not; neither are a standing body's
     unseen feet (upright shins) nor those of the same body lying on its back (flat shins,
-    flat thighs)."""
-    from prox_engine.scale_search import unseen_feet_on_kneeling_legs
+    flat thighs). Only the kneeler's toes are kneelers' toes (the scale search's)."""
+    from prox_engine.scale_search import kneelers_toes, unseen_feet_on_kneeling_legs
 
     scene, _, kneeling = _kneeler(body)
     seen = torch.ones(1, 25, dtype=torch.bool)
@@ -1288,6 +1288,9 @@ def test_unseen_feet_are_pointed_only_on_kneeling_legs(body):
     lying = standing @ rotation.T @ lying_down.T @ rotation  # turned about a world axis
     for body_keypoints in (standing, lying):
         assert not unseen_feet_on_kneeling_legs(body_keypoints[None], seen, up).any()
+        assert not kneelers_toes(body_keypoints[None], up).any()  # a walker's toes count
+    toes = kneelers_toes(kneeling[None, :25], scene.up_in_camera())
+    assert toes.nonzero()[:, 1].tolist() == [19, 20, 22, 23]
 
 
 def test_a_kneeler_whose_feet_are_unseen_is_fitted_at_its_depth(body):
@@ -1309,6 +1312,41 @@ def test_a_kneeler_whose_feet_are_unseen_is_fitted_at_its_depth(body):
         "prox-unpointed-feet")
     assert abs(pointed - 1) < 0.02 and error < 0.06, (pointed, error)
     assert unpointed < 0.97 and error_unpointed > 0.10, (unpointed, error_unpointed)
+
+
+def test_the_scale_search_does_not_ask_a_kneelers_seen_toes_to_be_in_view(body):
+    """A body down on its right knee (shin on the floor) at its true depth under a tilted,
+    rolled camera, the upright left foot fitted pointing down, as a kneeler's often is:
+    its toes' keypoints seen (legs and hips clearly, the upper body faintly) but 9 cm
+    through the floor. Toes turn about the ankle, so the scale search keeps the kneeler
+    within 2 % of its scale; asking its seen toes to be in front of the scan too
+    (`prox-toe-rays`), it shrinks the body toward the camera until they are."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+
+    cam2world = tilted_camera()
+    params = body.init_params(1)
+    for bone, angle in (("upperleg01.R", -0.2), ("lowerleg01.R", 2.0),
+                        ("upperleg01.L", -1.7), ("lowerleg01.L", 1.9), ("foot.L", 0.5)):
+        params["body_pose"][0, BODY_BONES.index(bone), 0] = angle
+    out, shift = _placed(body, params, cam2world)
+    left_foot = torch.tensor([p == "left_foot" for p in body.vertex_parts])
+    shift[2] = -float(out.vertices[0, ~left_foot, 2].min())  # the right knee on the floor
+    toes = out.keypoints[0, [19, 20], 2] + shift[2]
+    assert float(toes.max()) < -0.07, toes  # the seen toes are through the floor
+    world2cam = torch.tensor(np.linalg.inv(cam2world), dtype=torch.float32)
+    params["global_orient"] = matrix_to_axis_angle(
+        world2cam[:3, :3] @ axis_angle_to_matrix(params["global_orient"]))
+    params["transl"] = (world2cam[:3, :3] @ shift + world2cam[:3, 3])[None]
+    detected = torch.full((1, 25), 0.9)
+    detected[0, [*range(9), *range(15, 19)]] = 0.4  # head, arms and trunk faintly
+
+    def scale(config: str) -> float:
+        fitter = Fitter(body, CAMERA, load_config(config), floor_scene(cam2world))
+        return float(fitter._scale_search(params, detected)[0])
+
+    kept, shrunk = scale("prox"), scale("prox-toe-rays")
+    assert abs(kept - 1) < 0.02 and shrunk < 0.98, (kept, shrunk)
 
 
 def test_faint_legs_are_the_knees_and_ankles_reported_faintly_in_the_image(body):
