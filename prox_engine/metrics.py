@@ -37,10 +37,25 @@ def penetration_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> 
 def touching_vertices(vertices: torch.Tensor, body: BodyModel, scene: Scene
                       ) -> dict[str, torch.Tensor]:
     """Per contact part, its vertices within 2 cm of the scene surface (or inside it)."""
-    touching = {}
-    for part, ids in body.contact_parts.items():
-        touching[part] = ids[scene.exact_signed_distance(vertices[ids]) < CONTACT_THRESHOLD]
-    return touching
+    return _touching(_distances(vertices, scene, _contact_ids(body)), body)
+
+
+def _contact_ids(body: BodyModel) -> torch.Tensor:
+    return torch.cat(list(body.contact_parts.values()))
+
+
+def _distances(vertices: torch.Tensor, scene: Scene, ids: torch.Tensor) -> torch.Tensor:
+    """(V,) exact signed distances of the vertices ``ids`` (each once), NaN elsewhere."""
+    ids = ids.unique()
+    distance = torch.full((len(vertices),), float("nan"))
+    distance[ids] = scene.exact_signed_distance(vertices[ids])
+    return distance
+
+
+def _touching(distance: torch.Tensor, body: BodyModel) -> dict[str, torch.Tensor]:
+    """:func:`touching_vertices` from the vertices' ``distance`` (V,) (:func:`_distances`)."""
+    return {part: ids[distance[ids] < CONTACT_THRESHOLD]
+            for part, ids in body.contact_parts.items()}
 
 
 def contact_parts(vertices: torch.Tensor, body: BodyModel, scene: Scene) -> list[str]:
@@ -55,8 +70,9 @@ def scene_stats(vertices: torch.Tensor, body: BodyModel, scene: Scene
     and :func:`contact_parts`), and the vertex ids behind them, which renders paint; each
     scene query is made once."""
     ids = torch.nonzero(body.scene_vertices).flatten()
-    d = scene.exact_signed_distance(vertices[ids])
-    touching = touching_vertices(vertices, body, scene)
+    distance = _distances(vertices, scene, torch.cat([ids, _contact_ids(body)]))
+    d = distance[ids]
+    touching = _touching(distance, body)
     stats = {**_penetration(d), "contact_parts": [p for p, t in touching.items() if len(t)]}
     flagged = {"penetrating": ids[d < -PENETRATION_THRESHOLD].tolist(),
                "contact": sorted(set(torch.cat(list(touching.values())).tolist()))}
