@@ -212,6 +212,11 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     counted = torch.ones_like(carrying) if toes is None else ~toes[sampled]
     every_part = torch.cat(contact_parts) if contact_parts else None  # one lookup for all
     part_sizes = [len(ids) for ids in contact_parts]
+    rays = torch.zeros(len(vertices), len(SCALES))  # seen joints behind the scan, faint in view
+    if seen_joints is not None:
+        rays = rays + VISIBILITY_WEIGHT * _ray_shares(seen_joints, scene, behind=True)
+    if faint_joints is not None:
+        rays = rays + FAINT_WEIGHT * _ray_shares(faint_joints, scene, behind=False)
     best, lowest_cost = [], []
     for b in range(vertices.shape[0]):
         lowest_vertices = _lowest(SCALES[0] * vertices[b, sampled], scene)
@@ -244,12 +249,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                     scaled, signed, normals[b, sampled], carrying, lowest_vertices, scene, rho)
             return cost
 
-        rays = torch.zeros_like(prior)  # the seen joints behind the scan, the faint in view
-        if seen_joints is not None:
-            rays = rays + VISIBILITY_WEIGHT * _ray_share(seen_joints[b], scene, behind=True)
-        if faint_joints is not None:
-            rays = rays + FAINT_WEIGHT * _ray_share(faint_joints[b], scene, behind=False)
-        picked, cost = bounded_search(cost_at, rays, prior,
+        picked, cost = bounded_search(cost_at, rays[b], prior,
                                       math.inf if ceilings is None else float(ceilings[b]))
         if len(picked) == 0:
             best.append(torch.tensor(1.0))
@@ -295,13 +295,19 @@ def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], rays: torch.
     return picked[order], cost[order]
 
 
-def _ray_share(joints: torch.Tensor, scene: Scene, behind: bool) -> torch.Tensor:
-    """(len(SCALES),) the share of ``joints`` (J, 3; camera frame) behind the scan
-    (``behind``) or in front of it at each scale, 0 without joints: one ray per joint."""
-    if not len(joints):
-        return torch.zeros(len(SCALES))
-    back = SCALES[:, None] > scene.visible_scale(joints, float(SCALES[-1]))
-    return (back if behind else ~back).float().mean(1)
+def _ray_shares(joints: list[torch.Tensor], scene: Scene, behind: bool) -> torch.Tensor:
+    """(B, len(SCALES)) per body, the share of its ``joints`` (J, 3; camera frame) behind
+    the scan (``behind``) or in front of it at each scale, 0 without joints: one ray per
+    joint, all bodies' cast together."""
+    shares = torch.zeros(len(joints), len(SCALES))
+    if not any(len(j) for j in joints):
+        return shares
+    visible = scene.visible_scale(torch.cat(joints), float(SCALES[-1]))
+    for b, limits in enumerate(visible.split([len(j) for j in joints])):
+        if len(limits):
+            back = SCALES[:, None] > limits
+            shares[b] = (back if behind else ~back).float().mean(1)
+    return shares
 
 
 def _lowest(points: torch.Tensor, scene: Scene) -> torch.Tensor:
