@@ -793,14 +793,14 @@ class Fitter:
             vertices = out.vertices
             normals = self.vertex_normals(vertices)
         joints = out.keypoints[:, BODY]
+        up = self.scene.up_in_camera()
         seen, faint = detected > SEEN, self._faint_legs(detected, joints)
         if cfg.scale_free_toe_rays:
-            seen &= ~kneelers_toes(joints, self.scene.up_in_camera())
+            seen &= ~kneelers_toes(joints, up)
         seen = [joints[b, seen[b]] for b in range(len(joints))]
         faint = [joints[b, faint[b]] for b in range(len(joints))]
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
-        counted = (standing_counts(standing_legs(joints, detected, self.scene.up_in_camera()),
-                                   self.standing_parts)
+        counted = (standing_counts(standing_legs(joints, detected, up), self.standing_parts)
                    if bool(self.standing_parts.any()) and cfg.scale_standing_feet else None)
 
         def search(rows: torch.Tensor, ceilings: torch.Tensor | None = None

@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import torch
 
-from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, SHINS, TOES
+from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, TOES
 from .losses import contact_distances, gmof, part_vertices
 from .scene import Scene
 
@@ -113,8 +113,7 @@ def _elevations(keypoints: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor
         segment = keypoints[:, end] - keypoints[:, start]
         return (segment @ up) / segment.norm(dim=-1).clamp_min(1e-9)
 
-    knees = [knee for knee, _ in SHINS]
-    return slope(HIPS, knees), slope(knees, [foot[0] for _, foot in SHINS])
+    return slope(HIPS, KNEES), slope(KNEES, ANKLES)
 
 
 def standing_legs(keypoints: torch.Tensor, detected: torch.Tensor, up: torch.Tensor
@@ -134,14 +133,21 @@ def standing_counts(standing: torch.Tensor, parts: torch.Tensor) -> torch.Tensor
     return parts[None] | ~standing[:, None]
 
 
+def kneeling_legs(keypoints: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """(B, 2) bool, per leg (right, left): kneeling (see :data:`FLAT_SHIN`) in the fitted
+    BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in their frame."""
+    thigh, shin = _elevations(keypoints, up)
+    return (shin.abs() < math.sin(FLAT_SHIN)) & (thigh < -math.cos(KNEELING_THIGH))
+
+
 def unseen_feet_on_kneeling_legs(keypoints: torch.Tensor, seen: torch.Tensor,
                                  up: torch.Tensor) -> torch.Tensor:
     """(B, 2) bool, per leg (right, left): neither of the foot's toes clearly seen
     (``seen`` (B, 25); a seen heel does not turn the foot) and the leg kneeling (see
     :data:`FLAT_SHIN`) in the fitted BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in
     their frame."""
-    toes = [foot[1:3] for _, foot in SHINS]  # a kneeler's heel points up, in view
-    unseen = ~torch.stack([seen[:, pair].any(1) for pair in toes], 1)
+    # per leg as keypoints.SHINS orders them; a kneeler's heel points up, in view
+    unseen = ~seen[:, TOES].reshape(len(seen), 2, 2).any(2)
     return unseen & kneeling_legs(keypoints, up)
 
 
@@ -152,13 +158,6 @@ def kneelers_toes(keypoints: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     toes = torch.zeros(keypoints.shape[:2], dtype=torch.bool)
     toes[:, TOES] = True
     return toes & kneeling_legs(keypoints, up).any(1, keepdim=True)
-
-
-def kneeling_legs(keypoints: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    """(B, 2) bool, per leg (right, left): kneeling (see :data:`FLAT_SHIN`) in the fitted
-    BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in their frame."""
-    thigh, shin = _elevations(keypoints, up)
-    return (shin.abs() < math.sin(FLAT_SHIN)) & (thigh < -math.cos(KNEELING_THIGH))
 
 
 def toe_vertices(parts: list[str], rest: torch.Tensor, ankles: torch.Tensor) -> torch.Tensor:
