@@ -204,52 +204,54 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     bodies fitted at different sizes. Scales that cannot win are not evaluated
     (:func:`bounded_search`), nor those whose total (cost and size prior) cannot go under
     the body's ``ceilings`` ((B,)): a body whose total cannot returns one over its
-    ceiling, or scale 1 and an infinite cost."""
+    ceiling, or scale 1 and an infinite cost. All bodies' scales are evaluated together,
+    a round of the search at a time (the start choice searches up to 26 bodies at once in
+    batches: one call of each scene query per body and round cost a fifth of the search)."""
     prior = size_prior(SCALES)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
-    carrying = carrying[sampled]
-    counted = torch.ones_like(carrying) if toes is None else ~toes[sampled]
-    every_part = torch.cat(contact_parts) if contact_parts else None  # one lookup for all
+    placed = vertices[:, sampled]
+    counted = torch.ones(len(sampled)) if toes is None else ~toes[sampled]
+    every_part = torch.cat(contact_parts) if contact_parts else torch.zeros(0, dtype=torch.long)
+    touching, facing = vertices[:, every_part], normals[:, every_part]  # one lookup for all
     part_sizes = [len(ids) for ids in contact_parts]
     rays = torch.zeros(len(vertices), len(SCALES))  # seen joints behind the scan, faint in view
     if seen_joints is not None:
         rays = rays + VISIBILITY_WEIGHT * _ray_shares(seen_joints, scene, behind=True)
     if faint_joints is not None:
         rays = rays + FAINT_WEIGHT * _ray_shares(faint_joints, scene, behind=False)
+    undersides = ([_underside(placed[b], normals[b, sampled], carrying[sampled], scene)
+                   for b in range(len(vertices))] if use_support else [])
+
+    def cost_at(bodies: torch.Tensor, picked: torch.Tensor) -> torch.Tensor:
+        """Contact, penetration and support costs (R,) of the ``bodies`` (R,) at
+        SCALES[picked] (R,)."""
+        scales = SCALES[picked, None, None]
+        cost = torch.zeros(len(picked))
+        scaled = scales * placed[bodies]  # (R, N, 3)
+        signed = scene.signed_distance(scaled) if use_penetration or use_support else None
+        if use_penetration:
+            depth = torch.relu(-signed - PENETRATION_MARGIN)
+            inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
+            cost = cost + PENETRATION_WEIGHT * inside.mean(1)
+            if axes is not None:
+                through = scene.signed_distance(scales * axes[bodies]) < -PENETRATION_MARGIN
+                cost = cost + AXIS_WEIGHT * through.float().mean(1)
+        if use_contact and contact_parts:
+            dist, near, _ = contact_distances(scales * touching[bodies], facing[bodies], scene,
+                                              max_angle_deg, max_distance)
+            misses = torch.stack([_miss(d, n, rho) for d, n in zip(
+                dist.split(part_sizes, 1), near.split(part_sizes, 1))])
+            if counted_parts is not None:
+                misses = torch.where(counted_parts[bodies].T, misses, 1.0)
+            cost = cost + misses.mean(0)
+        if use_support:
+            cost = cost + SUPPORT_WEIGHT * _unsupported(
+                scaled, signed, [undersides[b] for b in bodies.tolist()], scene, rho)
+        return cost
+
+    ceilings = torch.full((len(vertices),), math.inf) if ceilings is None else ceilings
     best, lowest_cost = [], []
-    for b in range(vertices.shape[0]):
-        lowest_vertices = _lowest(SCALES[0] * vertices[b, sampled], scene)
-
-        def cost_at(picked: torch.Tensor) -> torch.Tensor:
-            """Contact, penetration and support costs (len(picked),) at SCALES[picked]."""
-            scales = SCALES[picked, None, None]
-            cost = torch.zeros(len(picked))
-            scaled = scales * vertices[b, sampled]  # (S, N, 3)
-            signed = scene.signed_distance(scaled) if use_penetration or use_support else None
-            if use_penetration:
-                depth = torch.relu(-signed - PENETRATION_MARGIN)
-                inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
-                cost = cost + PENETRATION_WEIGHT * inside.mean(1)
-                if axes is not None:
-                    through = scene.signed_distance(scales * axes[b]) < -PENETRATION_MARGIN
-                    cost = cost + AXIS_WEIGHT * through.float().mean(1)
-            if use_contact and contact_parts:
-                points = scales * vertices[b, every_part]
-                dist, near, _ = contact_distances(
-                    points, normals[b, every_part].expand_as(points), scene, max_angle_deg,
-                    max_distance)
-                misses = torch.stack([_miss(d, n, rho) for d, n in zip(
-                    dist.split(part_sizes, 1), near.split(part_sizes, 1))])
-                if counted_parts is not None:
-                    misses = torch.where(counted_parts[b, :, None], misses, 1.0)
-                cost = cost + misses.mean(0)
-            if use_support:
-                cost = cost + SUPPORT_WEIGHT * _unsupported(
-                    scaled, signed, normals[b, sampled], carrying, lowest_vertices, scene, rho)
-            return cost
-
-        picked, cost = bounded_search(cost_at, rays[b], prior,
-                                      math.inf if ceilings is None else float(ceilings[b]))
+    for picked, cost in bounded_search(cost_at, rays, prior, ceilings):
         if len(picked) == 0:
             best.append(torch.tensor(1.0))
             lowest_cost.append(torch.tensor(math.inf))
@@ -265,33 +267,47 @@ def size_prior(scales: torch.Tensor) -> torch.Tensor:
     return PRIOR_WEIGHT * (torch.log(scales) / SCALE_SIGMA) ** 2 / 2
 
 
-def bounded_search(cost_at: Callable[[torch.Tensor], torch.Tensor], rays: torch.Tensor,
-                   prior: torch.Tensor, ceiling: float = math.inf
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The indices into SCALES (ascending) at which the search evaluates ``cost_at``
-    (indices -> (S,) costs >= 0 of contact, penetration and support) and their costs
-    with ``rays`` (97,) added. The other terms being >= 0, ``rays`` plus the size
-    ``prior`` (97,) bounds each scale's total from below: scales are evaluated CHUNK at
-    a time in the order of that bound, and those whose bound exceeds the lowest total
-    found, or the ``ceiling``, are not, since they cannot win. The same pick as
-    evaluating every scale, where it is under the ceiling; none (empty) where no bound
-    is."""
+def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                   rays: torch.Tensor, prior: torch.Tensor, ceilings: torch.Tensor
+                   ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per body, the indices into SCALES (ascending) at which the search evaluates
+    ``cost_at`` (bodies (R,), indices (R,) -> (R,) costs >= 0 of contact, penetration and
+    support) and their costs with the body's ``rays`` ((B, 97)) added. The other terms
+    being >= 0, ``rays`` plus the size ``prior`` (97,) bounds each scale's total from
+    below: each body's scales are evaluated CHUNK at a time in the order of that bound,
+    and those whose bound exceeds the lowest total found, or the body's ``ceilings`` (B,),
+    are not, since they cannot win; each round evaluates every body's next chunk in one
+    call. The same pick as evaluating every scale, where it is under the ceiling; none
+    (empty) where no bound is."""
     bound = rays + prior
-    best_total = torch.tensor(ceiling)
-    picked, costs = [], []
-    for chunk in bound.argsort().split(CHUNK):
-        chunk = chunk[bound[chunk] <= best_total]
-        if len(chunk) == 0:
+    chunks = [bound[b].argsort().split(CHUNK) for b in range(len(bound))]
+    best_total = [torch.tensor(float(c)) for c in ceilings]
+    picked: list[list[torch.Tensor]] = [[] for _ in chunks]
+    costs: list[list[torch.Tensor]] = [[] for _ in chunks]
+    running = list(range(len(chunks)))
+    for round_ in range(math.ceil(len(SCALES) / CHUNK)):
+        asked = [(b, chunks[b][round_][bound[b, chunks[b][round_]] <= best_total[b]])
+                 for b in running]
+        asked = [(b, chunk) for b, chunk in asked if len(chunk)]
+        if not asked:
             break
-        cost = cost_at(chunk) + rays[chunk]
-        best_total = torch.minimum(best_total, (cost + prior[chunk]).min())
-        picked.append(chunk)
-        costs.append(cost)
-    if not picked:
-        return torch.zeros(0, dtype=torch.long), torch.zeros(0)
-    picked, cost = torch.cat(picked), torch.cat(costs)
-    order = picked.argsort()  # ties go to the smaller scale, as over the whole grid
-    return picked[order], cost[order]
+        bodies = torch.cat([torch.full((len(chunk),), b) for b, chunk in asked])
+        found = cost_at(bodies, torch.cat([chunk for _, chunk in asked]))
+        for (b, chunk), cost in zip(asked, found.split([len(c) for _, c in asked])):
+            cost = cost + rays[b, chunk]
+            best_total[b] = torch.minimum(best_total[b], (cost + prior[chunk]).min())
+            picked[b].append(chunk)
+            costs[b].append(cost)
+        running = [b for b, _ in asked]
+    searched = []
+    for chosen, cost in zip(picked, costs):
+        if not chosen:
+            searched.append((torch.zeros(0, dtype=torch.long), torch.zeros(0)))
+            continue
+        chosen, cost = torch.cat(chosen), torch.cat(cost)
+        order = chosen.argsort()  # ties go to the smaller scale, as over the whole grid
+        searched.append((chosen[order], cost[order]))
+    return searched
 
 
 def _ray_shares(joints: list[torch.Tensor], scene: Scene, behind: bool) -> torch.Tensor:
@@ -309,31 +325,39 @@ def _ray_shares(joints: list[torch.Tensor], scene: Scene, behind: bool) -> torch
     return shares
 
 
-def _lowest(points: torch.Tensor, scene: Scene) -> torch.Tensor:
-    """(N,) bool: the body's points (N, 3) within LOWEST of its height span of the lowest.
-    Scaling about the camera keeps the order: the search reads them once, at SCALES[0],
-    the same vertices whichever scales it evaluates."""
-    height = points @ scene.up_in_camera()
-    return height - height.min() <= LOWEST * (height.max() - height.min())
-
-
-def _unsupported(points: torch.Tensor, signed: torch.Tensor, normals: torch.Tensor,
-                 carrying: torch.Tensor, lowest: torch.Tensor, scene: Scene, rho: float
-                 ) -> torch.Tensor:
-    """(S,) robust gap (0: resting, 1: far) between the downward-facing ``lowest`` or
-    ``carrying`` (N,) body vertices (LOWEST_SHARE of it: lowest only) of each scaled copy
-    of a body, ``points`` (S, N, 3) camera frame with their signed distances
-    ``signed`` (S, N) and outward ``normals`` (N, 3), and the upward-facing scene
-    surfaces nearest to them."""
+def _underside(points: torch.Tensor, normals: torch.Tensor, carrying: torch.Tensor,
+               scene: Scene) -> tuple[torch.Tensor, torch.Tensor]:
+    """The vertices (indices into ``points`` (N, 3), camera frame, with outward
+    ``normals`` (N, 3)) that can rest on a surface: facing down, and among the body's
+    lowest (within LOWEST of its height span: scaling about the camera keeps the order,
+    so they are read at the body's fitted size, the same whichever scales are evaluated)
+    or ``carrying`` (N,) bool; and which of those are among the lowest."""
+    height = (SCALES[0] * points) @ scene.up_in_camera()
+    lowest = height - height.min() <= LOWEST * (height.max() - height.min())
     under = (scene.world_normals(normals)[:, 2] < DOWNWARD) & (lowest | carrying)
-    far = points.new_ones(points.shape[0])
-    if not under.any():
-        return far
-    carries = scene.sdf_normals(points[:, under])[..., 2] > UPWARD
-    gap = signed[:, under].abs()
-    low = lowest[under]
-    only_lowest = _miss(gap[:, low], carries[:, low], rho) if low.any() else far
-    return LOWEST_SHARE * only_lowest + (1 - LOWEST_SHARE) * _miss(gap, carries, rho)
+    ids = torch.nonzero(under).flatten()
+    return ids, lowest[ids]
+
+
+def _unsupported(points: torch.Tensor, signed: torch.Tensor,
+                 undersides: list[tuple[torch.Tensor, torch.Tensor]], scene: Scene, rho: float
+                 ) -> torch.Tensor:
+    """(R,) robust gap (0: resting, 1: far) between the underside (:func:`_underside`)
+    of each scaled body, ``points`` (R, N, 3) camera frame with their signed distances
+    ``signed`` (R, N) and ``undersides`` (R) (LOWEST_SHARE of it: its lowest vertices
+    only), and the upward-facing scene surfaces nearest to them."""
+    rows = torch.repeat_interleave(torch.arange(len(points)),
+                                   torch.tensor([len(ids) for ids, _ in undersides]))
+    ids = torch.cat([ids for ids, _ in undersides])
+    carries = scene.sdf_normals(points[rows, ids])[..., 2] > UPWARD
+    robust = gmof(signed[rows, ids].abs() ** 2, rho) / rho ** 2
+
+    def best(valid: torch.Tensor) -> torch.Tensor:  # _miss over each row's vertices
+        return torch.ones(len(points)).scatter_reduce(
+            0, rows, torch.where(valid, robust, torch.ones_like(robust)), "amin")
+
+    low = torch.cat([low for _, low in undersides])
+    return LOWEST_SHARE * best(carries & low) + (1 - LOWEST_SHARE) * best(carries)
 
 
 def _miss(distance: torch.Tensor, valid: torch.Tensor, rho: float) -> torch.Tensor:

@@ -952,40 +952,54 @@ def test_scale_search_skips_only_scales_that_cannot_win():
     total found: on jagged costs (a one-scale valley, as contact parts switching on make)
     it picks what the whole grid picks, and evaluates fewer scales the better the best;
     under a ceiling on the total, the same where the least total is under it, and no
-    total under it where it is not."""
-    from prox_engine.scale_search import SCALES, bounded_search
+    total under it where it is not. Fifty bodies searched together are searched as each
+    alone, every round of the search in one call."""
+    from prox_engine.scale_search import CHUNK, SCALES, bounded_search
 
-    count = len(SCALES)
+    count, bodies = len(SCALES), 50
     prior = 0.1 * (torch.log(SCALES) / 0.06) ** 2 / 2
     generator = torch.Generator().manual_seed(0)
-    for trial in range(50):
-        costs = torch.rand(count, generator=generator)
-        costs[int(torch.randint(count, (1,), generator=generator))] = 0.01 * trial
-        hidden = (torch.arange(count) > 70 + trial % 20).float()
-        evaluated = []
+    costs = torch.rand(bodies, count, generator=generator)
+    for trial in range(bodies):
+        costs[trial, int(torch.randint(count, (1,), generator=generator))] = 0.01 * trial
+    hidden = (torch.arange(count) > 70 + torch.arange(bodies)[:, None] % 20).float()
+    whole = costs + hidden + prior
+    least = whole.min(1).values
+    evaluated: list[list[int]] = [[] for _ in range(bodies)]
+    calls = []
 
-        def cost_at(picked: torch.Tensor) -> torch.Tensor:
-            evaluated.extend(picked.tolist())
-            return costs[picked]
+    def search(ceilings: torch.Tensor, first: int = 0) -> list:
+        """The bodies from ``first`` on, one per ceiling, searched together."""
+        def cost_at(which: torch.Tensor, picked: torch.Tensor) -> torch.Tensor:
+            calls.append(len(picked))
+            for b, i in zip(which.tolist(), picked.tolist()):
+                evaluated[first + b].append(i)
+            return costs[first + which, picked]
 
-        picked, cost = bounded_search(cost_at, hidden, prior)
-        assert picked.tolist() == sorted(set(evaluated))
-        assert torch.equal(cost, costs[picked] + hidden[picked])
-        whole = costs + hidden + prior
-        assert int(picked[(cost + prior[picked]).argmin()]) == int(whole.argmin())
-        # under a ceiling above the least total: the same pick from fewer scales; below
-        # it: no total under the ceiling (the caller's other candidate wins), and no
-        # scale at all where every bound is over it
-        least, everywhere = float(whole.min()), len(evaluated)
-        evaluated.clear()
-        capped, cost = bounded_search(cost_at, hidden, prior, least + 0.05)
-        assert int(capped[(cost + prior[capped]).argmin()]) == int(whole.argmin())
-        assert len(evaluated) <= everywhere
-        capped, cost = bounded_search(cost_at, hidden, prior, least - 1e-3)
-        assert len(capped) == 0 or float((cost + prior[capped]).min()) > least - 1e-3
-        below = float((hidden + prior).min()) - 1e-3
-        assert len(bounded_search(cost_at, hidden, prior, below)[0]) == 0
-    costs = torch.ones(count)
-    costs[48] = 0.0  # a body that meets the scene at its fitted size
-    picked, _ = bounded_search(lambda i: costs[i], torch.zeros(count), prior)
+        evaluated[:] = [[] for _ in range(bodies)]
+        return bounded_search(cost_at, hidden[first:first + len(ceilings)], prior, ceilings)
+
+    found = search(torch.full((bodies,), math.inf))
+    assert len(calls) <= math.ceil(count / CHUNK)
+    everywhere = [len(e) for e in evaluated]
+    for b, (picked, cost) in enumerate(found):
+        assert picked.tolist() == sorted(set(evaluated[b]))
+        assert torch.equal(cost, costs[b, picked] + hidden[b, picked])
+        assert int(picked[(cost + prior[picked]).argmin()]) == int(whole[b].argmin())
+    alone = search(torch.full((1,), math.inf), 7)[0]
+    assert torch.equal(alone[0], found[7][0]) and torch.equal(alone[1], found[7][1])
+    # under a ceiling above the least total: the same pick from fewer scales; below it:
+    # no total under the ceiling (the caller's other candidate wins), and no scale at all
+    # where every bound is over it
+    for b, (picked, cost) in enumerate(search(least + 0.05)):
+        assert int(picked[(cost + prior[picked]).argmin()]) == int(whole[b].argmin())
+        assert len(evaluated[b]) <= everywhere[b]
+    for b, (picked, cost) in enumerate(search(least - 1e-3)):
+        assert len(picked) == 0 or float((cost + prior[picked]).min()) > least[b] - 1e-3
+    below = (hidden + prior).min(1).values - 1e-3
+    assert all(len(picked) == 0 for picked, _ in search(below))
+    flat = torch.ones(1, count)
+    flat[0, 48] = 0.0  # a body that meets the scene at its fitted size
+    (picked, _), = bounded_search(lambda b, i: flat[b, i], torch.zeros(1, count), prior,
+                                  torch.full((1,), math.inf))
     assert 48 in picked.tolist() and len(picked) < count / 2
