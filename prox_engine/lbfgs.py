@@ -9,9 +9,10 @@ the groups advance in lockstep: every round poses the points all groups ask for 
 batched evaluation. A group follows the iterations it follows alone, up to the rounding
 of batched arithmetic; a group fitted alone follows ``torch.optim.LBFGS`` up to rounding.
 
-The algorithm's own arithmetic (points, directions, line searches) is numpy's in float64
-on vectors of a few hundred values, where each torch operation cost 1-5 us: a third of a
-keypoint evaluation's time went into the optimiser around it.
+The algorithm's own arithmetic (points, line searches) is numpy's in float64 on vectors
+of a few hundred values, where each torch operation cost 1-5 us: a third of a keypoint
+evaluation's time went into the optimiser around it; its directions are compiled
+(:func:`_two_loop`).
 """
 from __future__ import annotations
 
@@ -20,9 +21,9 @@ from abc import ABC, abstractmethod
 from itertools import accumulate
 from typing import Callable, Generator
 
+import numba
 import numpy as np
 import torch
-from scipy.linalg.lapack import dtrtrs
 
 # Evaluates the model at the variables' current values and returns each group's loss.
 Objective = Callable[[], Callable[[slice], torch.Tensor]]
@@ -228,70 +229,58 @@ def _step(x: np.ndarray, answer: tuple[float, np.ndarray], state: dict, max_iter
 
 class Pairs:
     """L-BFGS's last ``size`` pairs of steps s_i and gradient changes y_i of ``n``
-    variables (float64, oldest first), with rho_i = 1 / (y_i . s_i) and the inner products
-    s_i . y_j and y_i . y_j, in buffers kept from step to step: a new pair costs its
-    products with the others (one product of the variables' length), not a copy of
-    them. The products are torch's, which keeps to PROX_THREADS (numpy's BLAS would
-    thread them); the m x m work is numpy's."""
+    variables (float64), with rho_i = 1 / (y_i . s_i), in a ring of slots kept from step
+    to step, and the direction they give (:func:`_two_loop`)."""
 
     def __init__(self, size: int, n: int) -> None:
         self.size, self.count, self.start = size, 0, 0
-        # the steps' slots, then the changes' (a ring: the pairs, oldest first, in the
-        # slots order[0], order[1], ...)
-        self.pairs = np.zeros((2 * size, n))
-        self.order = np.zeros(0, dtype=np.int64)
-        self._pairs = torch.from_numpy(self.pairs)
+        self.pairs = np.zeros((2 * size, n))  # the steps' slots, then the changes'
         self.rho = np.zeros(size)
-        self.sy, self.yy = np.zeros((size, size)), np.zeros((size, size))
-        # the triangular systems of direction(): I + rho_i (s_i . y_j) for j > i, and
-        # I + rho_i (y_i . s_j) for j < i
-        self._first, self._second = np.eye(size), np.eye(size)
+        self.order = np.zeros(size, dtype=np.int64)  # the pairs' slots, oldest first
 
     def add(self, s: np.ndarray, y: np.ndarray, rho: float) -> None:
-        size, m = self.size, self.count
-        if m == size:  # full: the oldest pair goes, its slot the new one's
-            self.start = (self.start + 1) % size
-            self.rho[:-1] = self.rho[1:]
-            for gram in (self.sy, self.yy, self._first, self._second):
-                gram[:-1, :-1] = gram[1:, 1:]
-            m -= 1
-        self.order = (self.start + np.arange(m + 1)) % size  # the pairs' slots, oldest first
-        slot = self.order[m]
-        self.pairs[slot], self.pairs[size + slot], self.rho[m] = s, y, rho
-        # against [y, s]: the pairs' s_i . y and y_i . s, and their y_i . y
-        products = (self._pairs @ torch.from_numpy(np.stack([y, s], 1))).numpy()
-        steps, changes = products[self.order], products[size + self.order]
-        self.sy[:m + 1, m] = steps[:, 0]
-        self.sy[m, :m] = changes[:m, 1]
-        self.yy[:m + 1, m] = self.yy[m, :m + 1] = changes[:, 0]
-        self._first[:m, m] = self.sy[:m, m] * self.rho[:m]
-        self._first[m, :m] = self._second[:m, m] = 0.0
-        self._second[m, :m] = rho * self.sy[:m, m]
-        self._first[m, m] = self._second[m, m] = 1.0
-        self.count = m + 1
+        size = self.size
+        if self.count == size:  # full: the oldest pair goes, its slot the new one's
+            slot, self.start = self.start, (self.start + 1) % size
+        else:
+            slot, self.count = self.count, self.count + 1
+        self.pairs[slot], self.pairs[size + slot], self.rho[slot] = s, y, rho
+        self.order[:self.count] = (self.start + np.arange(self.count)) % size
 
     def direction(self, grad: np.ndarray, scale: float) -> np.ndarray:
-        """-H grad for the inverse Hessian H of the pairs with H_0 = ``scale`` I: torch's
-        two-loop recursion, whose 4m dot products and updates on the variables cost 150 us
-        a step for m = 20, as two triangular systems of m unknowns in the inner products,
-        and two combinations of the pairs.
+        """-H grad for the inverse Hessian H of the pairs with H_0 = ``scale`` I."""
+        return _two_loop(self.pairs, self.order, self.count, self.rho, grad, scale)
 
-        The first loop's a_i = rho_i s_i . q_i, q_i = -grad - sum_{j>i} a_j y_j, solves
-        a_i + rho_i sum_{j>i} (s_i . y_j) a_j = -rho_i s_i . grad; the second's c_i = a_i
-        - rho_i y_i . r_i, r_i = scale q_0 + sum_{j<i} c_j s_j, solves c_i + rho_i
-        sum_{j<i} (y_i . s_j) c_j = a_i - rho_i scale y_i . q_0. The direction is r_m."""
-        size, m = self.size, self.count
-        if not m:
-            return grad * -scale
-        r = self.rho[:m]
-        along = (self._pairs @ torch.from_numpy(grad)).numpy()  # s_i . grad, y_i . grad
-        # dtrtrs is LAPACK's own: scipy's solve_triangular checked its arguments for 7 us
-        a, _ = dtrtrs(self._first[:m, :m], -r * along[self.order], lower=0)
-        y_q = -along[size + self.order] - self.yy[:m, :m] @ a
-        c, _ = dtrtrs(self._second[:m, :m], a - r * scale * y_q, lower=1)
-        mix = np.zeros(2 * size)
-        mix[self.order], mix[size + self.order] = c, -scale * a
-        return (torch.from_numpy(mix) @ self._pairs).numpy() - scale * grad
+
+@numba.njit(cache=True)
+def _two_loop(pairs: np.ndarray, order: np.ndarray, m: int, rho: np.ndarray,
+              grad: np.ndarray, scale: float) -> np.ndarray:
+    """torch's two-loop recursion, compiled: -H ``grad`` for the inverse Hessian H of the
+    ``m`` pairs in the slots ``order`` (oldest first) of ``pairs`` (steps, then changes)
+    with H_0 = ``scale`` I. As numpy and torch operations (4m products and updates of the
+    variables, or two triangular systems in their inner products) a step cost 110-130 us
+    in a fit, 35 ms of a frame."""
+    size, n = pairs.shape[0] // 2, len(grad)
+    direction = -grad
+    alpha = np.empty(m)
+    for back in range(m - 1, -1, -1):  # newest first: a_i = rho_i s_i . q, q -= a_i y_i
+        i = order[back]
+        a = 0.0
+        for j in range(n):
+            a += pairs[i, j] * direction[j]
+        alpha[back] = a * rho[i]
+        for j in range(n):
+            direction[j] -= alpha[back] * pairs[size + i, j]
+    direction *= scale
+    for k in range(m):  # oldest first: r += s_i (a_i - rho_i y_i . r)
+        i = order[k]
+        b = 0.0
+        for j in range(n):
+            b += pairs[size + i, j] * direction[j]
+        b = alpha[k] - b * rho[i]
+        for j in range(n):
+            direction[j] += b * pairs[i, j]
+    return direction
 
 
 def _cubic_interpolate(x1: float, f1: float, g1: float, x2: float, f2: float, g2: float,
