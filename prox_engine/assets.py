@@ -2,8 +2,8 @@
 
 anny's first build takes about a minute, peaks at 1.4 GB and writes ~0.8 GB of cache, so
 ``prox setup`` (run by ``make setup``) builds it once, bakes the float32 model data to a
-safetensors file, and warms warp's kernel cache (skinning, bone chain, nearest faces); run
-time only loads that file.
+safetensors file, and warms warp's kernel cache (skinning, bone chain, nearest faces) and
+numba's (L-BFGS's directions); run time only loads that file.
 """
 from __future__ import annotations
 
@@ -87,6 +87,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     from .geometry import VertexNormals
     from .inside_depth import InsideDepth
     from .keypoint_terms import posed_terms
+    from .lbfgs import Pairs
     from .nearest_face import nearest_faces
     from .rigid_terms import rigid_fit
     from .sample_grid import SampleGrid
@@ -95,7 +96,8 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
 
     say("compiling the warp kernels: skinning, bone chain, keypoints and their terms, the "
         "start search's rigid fit, nearest samples and faces, SDF reads, depths inside, "
-        "contact distances, normals (cached after the first time) ...")
+        "contact distances, normals, and numba's L-BFGS directions (cached after the first "
+        "time) ...")
     body = AnnyBody.load()
     params = {k: v.requires_grad_(True) for k, v in body.init_params(1).items()}
     out = body(params)  # skinning, bone chain and anchored keypoints, both ways
@@ -122,4 +124,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
                                                       torch.ones(1, 1, 3), 1.0, 0.0)
     VertexNormals(body.faces, torch.zeros(1, dtype=torch.long))(
         torch.zeros(1, body.num_vertices, 3))
+    pairs = Pairs(1, 1)  # and numba's, of L-BFGS's directions
+    pairs.add(np.ones(1), np.ones(1), 1.0)
+    pairs.direction(np.ones(1), 1.0)
     return target
