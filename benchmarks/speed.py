@@ -3,9 +3,12 @@ seconds and body-model evaluations per frame, and the seconds per frame divided 
 of one body forward+backward measured on the same machine in the same run (a ratio that
 does not depend on the machine), with the accuracy (PJE) to show nothing was lost. A
 shared machine's speed drifts by a third within a minute, so the unit is measured before
-and after each recording's fit, and each fit is divided by the mean of the two. In
-sequence mode also the seconds of the frames fitted from their neighbour alone: what a long
-recording costs per frame, once its anchor frame's full fit is spread over many frames.
+and after each recording's fit, and each fit is divided by the mean of the two; the modes
+are fitted in turn, recording by recording, and with ``--rounds`` each recording several
+times, its seconds the median (batches' throughput against single frames is also given
+round by round). In sequence mode also the seconds of the frames fitted from their
+neighbour alone: what a long recording costs per frame, once its anchor frame's full fit is
+spread over many frames.
 
     .venv/bin/python -m benchmarks.speed --seed 1 --frames 8 --kinds sit walk --batch 8
 """
@@ -49,9 +52,11 @@ def body_seconds(body: AnnyBody, free_shape: bool, repeats: int = 30) -> float:
 
 
 def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
-        batch: int, sdf_dim: int = 256, log=print) -> dict:
-    """Fit every recording in every configuration and mode; returns the figures per
-    (configuration, mode) and the body's unit costs."""
+        batch: int, sdf_dim: int = 256, rounds: int = 1, log=print) -> dict:
+    """Fit every recording in every configuration and mode, ``rounds`` times, the modes in
+    turn recording by recording (a batch is then timed seconds after the single frames it
+    is compared with, not minutes); returns the figures per (configuration, mode), each
+    recording's seconds the median of its rounds, and the body's unit costs."""
     torch.set_num_threads(1)
     body = AnnyBody.load()
     data = out / "data"
@@ -71,42 +76,64 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     modes = {"single": (1, False), "sequence": (1, True), f"batch {batch}": (batch, False)}
     rows = {}
     for name in configs:
-        for mode, (size, sequence) in modes.items():
-            config = dataclasses.replace(load_config(name), batch_size=size, sdf_dim=sdf_dim)
-            fitted = out / "fits" / name / mode.replace(" ", "")
-            wall, counted, evaluations, fit_seconds, in_units, errors = 0.0, 0, 0.0, 0.0, 0.0, []
-            frames_seen: list[dict] = []
-            for rec in recordings:
-                start = time.perf_counter()
-                summary = fit_recording(data, rec, fitted, config, body,
-                                        sequence=sequence).summary
-                wall += time.perf_counter() - start
-                unit_after = measure_unit()
-                n = summary["frames_fitted"]
-                counted += n
-                evaluations += summary["body_evaluations_per_frame"] * n
-                fit_seconds += summary["seconds_per_frame"] * n
-                in_units += summary["seconds_per_frame"] * n / ((unit_before + unit_after) / 2)
-                unit_before = unit_after
-                frames_seen += summary["frames"]
-                errors += evaluate_recording(data, rec, fitted, body, scenes[rec])
+        timed: dict[str, list[list[dict]]] = {mode: [] for mode in modes}  # [recording][round]
+        for rec in recordings:
+            for mode in modes:
+                timed[mode].append([])
+            for _ in range(rounds):
+                for mode, (size, sequence) in modes.items():
+                    config = dataclasses.replace(load_config(name), batch_size=size,
+                                                 sdf_dim=sdf_dim)
+                    start = time.perf_counter()
+                    summary = fit_recording(data, rec, _fitted(out, name, mode), config, body,
+                                            sequence=sequence).summary
+                    wall = time.perf_counter() - start
+                    unit_after = measure_unit()
+                    n = summary["frames_fitted"]
+                    fit = summary["seconds_per_frame"] * n
+                    timed[mode][-1].append({
+                        "frames": n, "wall": wall, "fit": fit,
+                        "evaluations": summary["body_evaluations_per_frame"] * n,
+                        "units": fit / ((unit_before + unit_after) / 2),
+                        "frames_seen": summary["frames"]})
+                    unit_before = unit_after
+        for mode, per_recording in timed.items():
+            counted = sum(runs[0]["frames"] for runs in per_recording)
+
+            def median(key: str) -> float:
+                return sum(statistics.median(r[key] for r in runs)
+                           for runs in per_recording) / counted
+
+            errors = [e for rec in recordings for e in evaluate_recording(
+                data, rec, _fitted(out, name, mode), body, scenes[rec])]
             rows[(name, mode)] = {
-                "wall_seconds_per_frame": wall / counted,
-                "fit_seconds_per_frame": fit_seconds / counted,
-                "body_evaluations_per_frame": evaluations / counted,
-                "ratio": in_units / counted,
-                "warm_started_seconds_per_frame": warm_started_seconds(frames_seen),
+                "wall_seconds_per_frame": median("wall"),
+                "fit_seconds_per_frame": median("fit"),
+                "body_evaluations_per_frame": median("evaluations"),
+                "ratio": median("units"),
+                "warm_started_seconds_per_frame": warm_started_seconds(
+                    [f for runs in per_recording for r in runs for f in r["frames_seen"]]),
                 "pje_mm": aggregate(errors)["pje"]}
-            log(f"{name:<10} {mode:<9} " + " ".join(f"{k} {v:.3g}"
-                                                    for k, v in rows[(name, mode)].items()
-                                                    if v is not None))
+            if mode.startswith("batch"):  # each round's single frames against its batches
+                rows[(name, mode)]["speed_up_per_round"] = [
+                    sum(runs[r]["fit"] for runs in timed["single"])
+                    / sum(runs[r]["fit"] for runs in per_recording) for r in range(rounds)]
+            log(f"{name:<10} {mode:<9} " + " ".join(
+                f"{k} {v:.3g}" for k, v in rows[(name, mode)].items()
+                if isinstance(v, float)))
     unit = {kind: statistics.median(times) for kind, times in units.items()}
     log(f"body forward+backward: {unit['frozen_shape'] * 1000:.1f} ms with the shape frozen, "
         f"{unit['free_shape'] * 1000:.1f} ms free (medians of {len(units['free_shape'])}; "
         f"free {min(units['free_shape']) * 1000:.1f}-{max(units['free_shape']) * 1000:.1f})")
     return {"unit_seconds": unit, "unit_samples": units, "rows": rows,
             "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": batch,
-                         "sdf_dim": sdf_dim, "threads": torch.get_num_threads()}}
+                         "sdf_dim": sdf_dim, "rounds": rounds,
+                         "threads": torch.get_num_threads()}}
+
+
+def _fitted(out: Path, config: str, mode: str) -> Path:
+    """Where a configuration's fits in a mode are written (each round over the last)."""
+    return out / "fits" / config / mode.replace(" ", "")
 
 
 def warm_started_seconds(frames: list[dict]) -> float | None:
@@ -125,7 +152,9 @@ def markdown(result: dict) -> str:
             f"{unit['frozen_shape'] * 1000:.1f} ms (shape frozen), "
             f"{unit['free_shape'] * 1000:.1f} ms (shape free; the ratio's unit), medians of "
             f"{len(result['unit_samples']['free_shape'])} measured between the fits, each "
-            f"fit divided by the mean of the two around it.\n\n"
+            f"fit divided by the mean of the two around it; each recording fitted "
+            f"{s['rounds']} time(s) in every mode, the modes in turn, its seconds the "
+            f"median.\n\n"
             "| config | mode | s/frame (fit) | s/frame (wall) | body evaluations/frame "
             "| s/frame / body eval | s/frame warm-started | PJE mm |\n"
             "|---|---|---|---|---|---|---|---|\n")
@@ -134,6 +163,12 @@ def markdown(result: dict) -> str:
                  f"{r['wall_seconds_per_frame']:.2f} | {r['body_evaluations_per_frame']:.0f} | "
                  f"{r['ratio']:.0f} | {_seconds(r['warm_started_seconds_per_frame'])} | "
                  f"{r['pje_mm']:.1f} |\n")
+    for (name, mode), r in result["rows"].items():
+        if "speed_up_per_round" in r:
+            rounds = r["speed_up_per_round"]
+            text += (f"\n{name}, {mode}: {statistics.median(rounds):.2f}x single frames' "
+                     f"throughput (median of {len(rounds)} rounds: "
+                     f"{', '.join(f'{x:.2f}' for x in rounds)}).\n")
     return text
 
 
@@ -151,9 +186,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--configs", nargs="+", default=["rgb", "prox"])
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--sdf-dim", type=int, default=256)
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="fit each recording this many times in every mode, the modes "
+                             "in turn; each recording's seconds are its rounds' median")
     args = parser.parse_args(argv)
     result = run(args.out, args.seed, args.frames, args.kinds, args.configs, args.batch,
-                 args.sdf_dim)
+                 args.sdf_dim, args.rounds)
     text = markdown(result)
     args.out.mkdir(parents=True, exist_ok=True)
     serialisable = {**result, "rows": [{"config": c, "mode": m, **r}

@@ -190,3 +190,22 @@ def test_speed_benchmark_divides_each_fit_by_the_unit_measured_around_it(tmp_pat
         expected = summary["seconds_per_frame"] / ((free[i] + free[i + 1]) / 2)
         assert result["rows"][("rgb", mode)]["ratio"] == pytest.approx(expected)
     assert result["unit_seconds"]["free_shape"] == pytest.approx(sum(sorted(free)[1:3]) / 2)
+
+
+def test_speed_benchmark_fits_the_modes_in_turn_round_by_round(tmp_path, body):
+    """With ``rounds``, every recording is fitted that many times in each mode, the modes
+    in turn (the unit measured after each fit), and a batch's throughput against single
+    frames is given per round: the last round's is that of the fits it left on disk."""
+    import json
+
+    from benchmarks.speed import markdown, run
+
+    result = run(tmp_path, seed=5, frames=2, kinds=["sit"], configs=["rgb"], batch=2,
+                 sdf_dim=64, rounds=2, log=lambda _: None)
+    assert len(result["unit_samples"]["free_shape"]) == 1 + 3 * 2
+    seconds = {folder: json.loads(next((tmp_path / "fits" / "rgb" / folder).glob(
+        "*/summary.json")).read_text())["seconds_per_frame"] for folder in ("single", "batch2")}
+    speed_up = result["rows"][("rgb", "batch 2")]["speed_up_per_round"]
+    assert len(speed_up) == 2
+    assert speed_up[-1] == pytest.approx(seconds["single"] / seconds["batch2"])
+    assert "x single frames' throughput (median of 2 rounds" in markdown(result)
