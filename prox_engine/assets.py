@@ -87,7 +87,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
     from .geometry import VertexNormals
     from .inside_depth import InsideDepth
     from .keypoint_terms import posed_terms
-    from .lbfgs import Pairs
+    from .lbfgs import compile_directions
     from .nearest_face import nearest_faces
     from .rigid_terms import rigid_fit
     from .sample_grid import SampleGrid
@@ -124,7 +124,5 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
                                                       torch.ones(1, 1, 3), 1.0, 0.0)
     VertexNormals(body.faces, torch.zeros(1, dtype=torch.long))(
         torch.zeros(1, body.num_vertices, 3))
-    pairs = Pairs(1, 1)  # and numba's, of L-BFGS's directions
-    pairs.add(np.ones(1), np.ones(1), 1.0)
-    pairs.direction(np.ones(1), 1.0)
+    compile_directions()  # and numba's, of L-BFGS's directions
     return target

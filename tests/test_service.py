@@ -325,18 +325,22 @@ def test_a_frame_without_people_is_skipped_and_reported(stack, dataset_zip):
 
 def test_a_worker_loads_the_report_stack_and_freezes_it_before_forking():
     """What a worker's horses inherit: the fit's and the report's modules imported, every
-    report template compiled, and all of it frozen out of the garbage collector's walks
-    (a subprocess, as a worker is: freezing the test process would keep its garbage)."""
+    report template compiled, L-BFGS's compiled directions loaded, and all of it frozen
+    out of the garbage collector's walks (a subprocess, as a worker is: freezing the test
+    process would keep its garbage)."""
     probe = ("import gc, sys; from worker.tasks import preload; preload(); "
              "from prox_engine.report import _templates, template_dir; "
+             "from prox_engine.lbfgs import _two_loop; "
              "print(gc.get_freeze_count(), len(_templates().cache), "
              "len(list(template_dir().glob('*.html'))), "
-             "all(m in sys.modules for m in ('prox_engine.render', 'prox_engine.pipeline')))")
+             "all(m in sys.modules for m in ('prox_engine.render', 'prox_engine.pipeline')), "
+             "len(_two_loop.signatures))")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                           timeout=300, cwd=Path(__file__).parents[1])
-    frozen, compiled, templates, imported = done.stdout.split()[-4:]
+    frozen, compiled, templates, imported, directions = done.stdout.split()[-5:]
     assert int(frozen) > 100_000  # the body model's, torch's and pyrender's objects
     assert int(compiled) == int(templates) > 0 and imported == "True"
+    assert int(directions) == 1  # no horse loads them (0.3 s a job)
 
 
 def test_scratch_of_killed_horses_is_cleaned_and_a_job_deleted_as_it_starts(stack, tmp_path):
