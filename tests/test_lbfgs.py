@@ -44,8 +44,8 @@ STIFFNESS = torch.tensor([100.0, 1e5, 10.0], dtype=torch.float64)
 
 
 def test_one_group_follows_torch():
-    """A single group takes torch's L-BFGS steps (its two-loop recursion solved as two
-    triangular systems: the same steps up to rounding)."""
+    """A single group takes torch's L-BFGS steps (its two-loop recursion compiled: the
+    same steps up to rounding)."""
     for max_iter in (5, 40):
         torch.testing.assert_close(_lockstep(START, STIFFNESS, [slice(0, 3)], max_iter),
                                    _torch(START, STIFFNESS, max_iter), rtol=1e-9, atol=1e-9)
