@@ -209,7 +209,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     batches: one call of each scene query per body and round cost a fifth of the search)."""
     prior = size_prior(SCALES)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
-    placed = vertices[:, sampled]
+    placed, carrying = vertices[:, sampled], carrying[sampled]
     counted = torch.ones(len(sampled)) if toes is None else ~toes[sampled]
     every_part = torch.cat(contact_parts) if contact_parts else torch.zeros(0, dtype=torch.long)
     touching, facing = vertices[:, every_part], normals[:, every_part]  # one lookup for all
@@ -219,7 +219,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         rays = rays + VISIBILITY_WEIGHT * _ray_shares(seen_joints, scene, behind=True)
     if faint_joints is not None:
         rays = rays + FAINT_WEIGHT * _ray_shares(faint_joints, scene, behind=False)
-    undersides = ([_underside(placed[b], normals[b, sampled], carrying[sampled], scene)
+    undersides = ([_underside(placed[b], normals[b, sampled], carrying, scene)
                    for b in range(len(vertices))] if use_support else [])
 
     def cost_at(bodies: torch.Tensor, picked: torch.Tensor) -> torch.Tensor:
