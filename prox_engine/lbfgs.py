@@ -236,7 +236,6 @@ class Pairs:
         self.size, self.count, self.start = size, 0, 0
         self.pairs = np.zeros((2 * size, n))  # the steps' slots, then the changes'
         self.rho = np.zeros(size)
-        self.order = np.zeros(size, dtype=np.int64)  # the pairs' slots, oldest first
 
     def add(self, s: np.ndarray, y: np.ndarray, rho: float) -> None:
         size = self.size
@@ -245,11 +244,10 @@ class Pairs:
         else:
             slot, self.count = self.count, self.count + 1
         self.pairs[slot], self.pairs[size + slot], self.rho[slot] = s, y, rho
-        self.order[:self.count] = (self.start + np.arange(self.count)) % size
 
     def direction(self, grad: np.ndarray, scale: float) -> np.ndarray:
         """-H grad for the inverse Hessian H of the pairs with H_0 = ``scale`` I."""
-        return _two_loop(self.pairs, self.order, self.count, self.rho, grad, scale)
+        return _two_loop(self.pairs, self.start, self.count, self.rho, grad, scale)
 
 
 def compile_directions() -> None:
@@ -262,18 +260,18 @@ def compile_directions() -> None:
 
 
 @numba.njit(cache=True)
-def _two_loop(pairs: np.ndarray, order: np.ndarray, m: int, rho: np.ndarray,
-              grad: np.ndarray, scale: float) -> np.ndarray:
+def _two_loop(pairs: np.ndarray, start: int, m: int, rho: np.ndarray, grad: np.ndarray,
+              scale: float) -> np.ndarray:
     """torch's two-loop recursion, compiled: -H ``grad`` for the inverse Hessian H of the
-    ``m`` pairs in the slots ``order`` (oldest first) of ``pairs`` (steps, then changes)
-    with H_0 = ``scale`` I. As numpy and torch operations (4m products and updates of the
-    variables, or two triangular systems in their inner products) a step cost 110-130 us
-    in a fit, 35 ms of a frame."""
+    ``m`` pairs in the ring of slots of ``pairs`` (steps, then changes), the oldest at
+    slot ``start``, with H_0 = ``scale`` I. As numpy and torch operations (4m products
+    and updates of the variables, or two triangular systems in their inner products) a
+    step cost 110-130 us in a fit, 35 ms of a frame."""
     size, n = pairs.shape[0] // 2, len(grad)
     direction = -grad
     alpha = np.empty(m)
     for back in range(m - 1, -1, -1):  # newest first: a_i = rho_i s_i . q, q -= a_i y_i
-        i = order[back]
+        i = (start + back) % size
         a = 0.0
         for j in range(n):
             a += pairs[i, j] * direction[j]
@@ -282,7 +280,7 @@ def _two_loop(pairs: np.ndarray, order: np.ndarray, m: int, rho: np.ndarray,
             direction[j] -= alpha[back] * pairs[size + i, j]
     direction *= scale
     for k in range(m):  # oldest first: r += s_i (a_i - rho_i y_i . r)
-        i = order[k]
+        i = (start + k) % size
         b = 0.0
         for j in range(n):
             b += pairs[size + i, j] * direction[j]
