@@ -104,6 +104,16 @@ def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
                                   math.cos(math.radians(max_angle_deg)), sink)
 
 
+def nearest_contacts(points: torch.Tensor, normals: torch.Tensor, sizes: list[int],
+                     scene: Scene, max_angle_deg: float, max_distance: float) -> torch.Tensor:
+    """Per row of points (R, N, 3) with outward body normals, split into consecutive parts
+    of ``sizes`` points, the distance to contact of each part's nearest point that
+    qualifies for it (:func:`contact_distances`, without ``sink``), inf where none does:
+    (R, len(sizes))."""
+    return scene.contact_distance.nearest(points, normals, sizes, max_distance,
+                                          math.cos(math.radians(max_angle_deg)))
+
+
 def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rho: float,
                    max_angle_deg: float, max_distance: float,
                    sink: torch.Tensor | None = None) -> torch.Tensor:

@@ -19,7 +19,7 @@ from collections.abc import Callable
 import torch
 
 from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, TOES
-from .losses import contact_distances, gmof, part_vertices
+from .losses import gmof, nearest_contacts, part_vertices
 from .scene import Scene
 
 SCALES = torch.exp(torch.linspace(math.log(0.7), math.log(1.4), 97))
@@ -237,10 +237,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                 through = scene.signed_distance(scales * axes[bodies]) < -PENETRATION_MARGIN
                 cost = cost + AXIS_WEIGHT * through.float().mean(1)
         if use_contact and contact_parts:
-            dist, near, _ = contact_distances(scales * touching[bodies], facing[bodies], scene,
-                                              max_angle_deg, max_distance)
-            misses = torch.stack([_miss(d, n, rho) for d, n in zip(
-                dist.split(part_sizes, 1), near.split(part_sizes, 1))])
+            nearest = nearest_contacts(scales * touching[bodies], facing[bodies], part_sizes,
+                                       scene, max_angle_deg, max_distance)
+            misses = _miss(nearest, rho).T
             if counted_parts is not None:
                 misses = torch.where(counted_parts[bodies].T, misses, 1.0)
             cost = cost + misses.mean(0)
@@ -346,22 +345,18 @@ def _unsupported(points: torch.Tensor, signed: torch.Tensor,
     of each scaled body, ``points`` (R, N, 3) camera frame with their signed distances
     ``signed`` (R, N) and ``undersides`` (R) (LOWEST_SHARE of it: its lowest vertices
     only), and the upward-facing scene surfaces nearest to them."""
-    rows = torch.repeat_interleave(torch.arange(len(points)),
-                                   torch.tensor([len(ids) for ids, _ in undersides]))
+    sizes = [len(ids) for ids, _ in undersides]
+    rows = torch.repeat_interleave(torch.arange(len(points)), torch.tensor(sizes))
     ids = torch.cat([ids for ids, _ in undersides])
-    carries = scene.sdf_normals(points[rows, ids])[..., 2] > UPWARD
-    robust = gmof(signed[rows, ids].abs() ** 2, rho) / rho ** 2
-
-    def best(valid: torch.Tensor) -> torch.Tensor:  # _miss over each row's vertices
-        return torch.ones(len(points)).scatter_reduce(
-            0, rows, torch.where(valid, robust, torch.ones_like(robust)), "amin")
-
-    low = torch.cat([low for _, low in undersides])
-    return LOWEST_SHARE * best(carries & low) + (1 - LOWEST_SHARE) * best(carries)
+    gaps = scene.contact_distance.nearest_upward(
+        scene.to_world(points[rows, ids]), signed[rows, ids].abs(),
+        torch.cat([low for _, low in undersides]), sizes, UPWARD)
+    lowest, any_ = _miss(gaps, rho).unbind(1)
+    return LOWEST_SHARE * lowest + (1 - LOWEST_SHARE) * any_
 
 
-def _miss(distance: torch.Tensor, valid: torch.Tensor, rho: float) -> torch.Tensor:
-    """(S,) how far the best of the ``valid`` points (S, N) at ``distance`` is from
-    touching: the robust distance (0 touching, toward 1 far away), 1 when none is valid."""
-    robust = gmof(distance ** 2, rho) / rho ** 2
-    return torch.where(valid, robust, torch.ones_like(robust)).min(1).values
+def _miss(nearest: torch.Tensor, rho: float) -> torch.Tensor:
+    """How far each part, its best qualifying point ``nearest`` (m, inf when none
+    qualifies), is from touching: the robust distance (0 touching, toward 1 far away), 1
+    when none qualifies."""
+    return torch.where(nearest.isfinite(), gmof(nearest ** 2, rho) / rho ** 2, 1.0)

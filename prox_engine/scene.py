@@ -105,10 +105,6 @@ class Scene:
         return triangle_signed_distance(world, self._samples, self._sample_face,
                                         self._triangles64, self._normals64, k=EXACT_K)
 
-    def sdf_normals(self, points_cam: torch.Tensor) -> torch.Tensor:
-        """Outward scene normals (world frame, no gradient) at camera-frame points."""
-        return self.sdf.normals(self.to_world(points_cam))
-
     @torch.no_grad()
     def exact_signed_distance(self, points_cam: torch.Tensor) -> torch.Tensor:
         """Signed distances (N,) at camera-frame points from the nearest triangles

@@ -392,6 +392,46 @@ def test_contact_energy_is_the_torch_form_seen_by_a_tilted_camera():
     assert 0.1 < float(valid.float().mean()) < 0.9
 
 
+def test_nearest_contacts_and_upward_gaps_are_the_minima_over_every_point():
+    """The scale search's per-part nearest qualifying contact and per-body nearest gap over
+    an upward-facing surface, which read a point's SDF normal only when it could be the
+    nearest yet, are the minima of the all-points queries: near a tilted box seen by a
+    tilted, off-centre camera, points in uneven parts (an empty one among them), normals
+    turned every way."""
+    from prox_engine.synthetic import look_at
+
+    box = trimesh.creation.box(extents=(0.9, 0.6, 0.5))
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.5, [0.2, 1.0, 0.4]))
+    cam2world = look_at(np.array([0.8, -2.4, 1.4]), np.array([0.1, 0.1, 0.0]))
+    scene = _seen_scene(box, cam2world, dim=48)
+    g = torch.Generator().manual_seed(2)
+    world = torch.from_numpy(box.sample(900, seed=3)).float()
+    world = world + 0.06 * torch.randn(len(world), 3, generator=g)
+    points = _in_camera(world, cam2world).reshape(3, 300, 3)
+    normals = torch.nn.functional.normalize(torch.randn(3, 300, 3, generator=g), dim=-1)
+    sizes, reach, facing = [40, 0, 7, 153, 100], 0.15, math.cos(math.radians(45))
+
+    nearest = scene.contact_distance.nearest(points, normals, sizes, reach, facing)
+    dist, valid, _ = scene.contact_distance(points, normals, reach, facing)
+    expected = torch.stack([torch.where(v, d, math.inf).min(1).values if len(d[0]) else
+                            torch.full((3,), math.inf) for d, v in zip(
+                                dist.split(sizes, 1), valid.split(sizes, 1))], 1)
+    assert torch.equal(nearest, expected)
+    assert nearest.isfinite().sum() >= 6 and not nearest[:, 1].isfinite().any()
+
+    flat, gaps = world[:600], scene.sdf(world[:600]).abs()
+    low = torch.rand(600, generator=g) < 0.3
+    upward = scene.sdf.normals(flat)[:, 2] > 0.7
+    sizes = [250, 0, 350]
+    found = scene.contact_distance.nearest_upward(flat, gaps, low, sizes, 0.7)
+    expected = torch.stack([torch.stack([torch.where(u & lo, d, math.inf).min(),
+                                         torch.where(u, d, math.inf).min()])
+                            if len(d) else torch.full((2,), math.inf) for d, u, lo in zip(
+                                gaps.split(sizes), upward.split(sizes), low.split(sizes))])
+    assert torch.equal(found, expected)
+    assert found.isfinite().sum() == 4
+
+
 def test_exact_distance_uses_surface_not_vertices():
     """Point-to-surface distance: a point over the middle of a large triangle is close,
     on the side its normal points to positive, below it negative."""
