@@ -63,7 +63,7 @@ def _contact(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
 
 
 @wp.kernel
-def _nearest(points: wp.array2d(dtype=wp.vec3), normals: wp.array2d(dtype=wp.vec3),
+def _nearest_contact(points: wp.array2d(dtype=wp.vec3), normals: wp.array2d(dtype=wp.vec3),
              starts: wp.array(dtype=wp.int32), grid: wp.array3d(dtype=wp.float32),
              linear: wp.mat33, offset: wp.vec3, world_linear: wp.mat33, world_offset: wp.vec3,
              rotation: wp.mat33, shift: wp.vec3, h: float, max_distance: float,
@@ -106,7 +106,7 @@ _CONTACT = CpuKernel(_contact, (wp.vec3, wp.vec3, wp.float32, wp.float32, *[None
                                 wp.float32, wp.int32, wp.vec3))
 _UPWARD = CpuKernel(_upward, (wp.vec3, wp.float32, wp.int32, wp.int32, wp.float32,
                               *[None] * 4, wp.float32))
-_NEAREST = CpuKernel(_nearest, (wp.vec3, wp.vec3, wp.int32, wp.float32, *[None] * 9,
+_NEAREST = CpuKernel(_nearest_contact, (wp.vec3, wp.vec3, wp.int32, wp.float32, *[None] * 9,
                                 wp.float32))
 
 
