@@ -47,6 +47,9 @@ CARRYING_PARTS = ("back", "gluteus", "thighs", "left_foot", "right_foot")
 # skips those whose size prior and joints' rays alone exceed the best total found
 # (bounded_search): about half of them, the same pick.
 CHUNK = 16
+# A scale whose cost exceeds by more than SLACK what it may cost to beat the lowest total
+# evaluated cannot win (sums in another order round differently): its penetration is not read.
+SLACK = 1e-4
 # Penetration and support are judged on every third body vertex (about 2 cm apart on an
 # adult): 97 scales of the whole mesh were a fifth of a frame's time.
 STRIDE = 3
@@ -222,20 +225,14 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     undersides = ([_underside(placed[b], normals[b, sampled], carrying, scene)
                    for b in range(len(vertices))] if use_support else [])
 
-    def cost_at(bodies: torch.Tensor, picked: torch.Tensor) -> torch.Tensor:
+    def cost_at(bodies: torch.Tensor, picked: torch.Tensor, limits: torch.Tensor
+                ) -> torch.Tensor:
         """Contact, penetration and support costs (R,) of the ``bodies`` (R,) at
-        SCALES[picked] (R,)."""
+        SCALES[picked] (R,); inf where contact, support and the axes alone exceed the
+        ``limits`` (R,), which the penetration term, read last, could only raise."""
         scales = SCALES[picked, None, None]
         cost = torch.zeros(len(picked))
         scaled = scales * placed[bodies]  # (R, N, 3)
-        signed = scene.signed_distance(scaled) if use_penetration or use_support else None
-        if use_penetration:
-            depth = torch.relu(-signed - PENETRATION_MARGIN)
-            inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
-            cost = cost + PENETRATION_WEIGHT * inside.mean(1)
-            if axes is not None:
-                through = scene.signed_distance(scales * axes[bodies]) < -PENETRATION_MARGIN
-                cost = cost + AXIS_WEIGHT * through.float().mean(1)
         if use_contact and contact_parts:
             nearest = nearest_contacts(scales * touching[bodies], facing[bodies], part_sizes,
                                        scene, max_angle_deg, max_distance)
@@ -245,7 +242,16 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
             cost = cost + misses.mean(0)
         if use_support:
             cost = cost + SUPPORT_WEIGHT * _unsupported(
-                scaled, signed, [undersides[b] for b in bodies.tolist()], scene, rho)
+                scaled, [undersides[b] for b in bodies.tolist()], scene, rho)
+        if use_penetration and axes is not None:
+            through = scene.signed_distance(scales * axes[bodies]) < -PENETRATION_MARGIN
+            cost = cost + AXIS_WEIGHT * through.float().mean(1)
+        if use_penetration:
+            open_ = torch.nonzero(cost <= limits).flatten()
+            depth = torch.relu(-scene.signed_distance(scaled[open_]) - PENETRATION_MARGIN)
+            inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
+            cost = torch.full_like(cost, math.inf).index_put_(
+                (open_,), cost[open_] + PENETRATION_WEIGHT * inside.mean(1))
         return cost
 
     ceilings = torch.full((len(vertices),), math.inf) if ceilings is None else ceilings
@@ -266,12 +272,14 @@ def size_prior(scales: torch.Tensor) -> torch.Tensor:
     return PRIOR_WEIGHT * (torch.log(scales) / SCALE_SIGMA) ** 2 / 2
 
 
-def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
                    rays: torch.Tensor, prior: torch.Tensor, ceilings: torch.Tensor
                    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Per body, the indices into SCALES (ascending) at which the search evaluates
-    ``cost_at`` (bodies (R,), indices (R,) -> (R,) costs >= 0 of contact, penetration and
-    support) and their costs with the body's ``rays`` ((B, 97)) added. The other terms
+    ``cost_at`` (bodies (R,), indices (R,), limits (R,) -> (R,) costs >= 0 of contact,
+    penetration and support, or inf where over the limit: the most each scale can cost and
+    still beat the lowest total evaluated) and their costs with the body's ``rays`` ((B,
+    97)) added. The other terms
     being >= 0, ``rays`` plus the size ``prior`` (97,) bounds each scale's total from
     below: each body's scales are evaluated CHUNK at a time in the order of that bound,
     and those whose bound exceeds the lowest total found, or the body's ``ceilings`` (B,),
@@ -281,6 +289,7 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
     bound = rays + prior
     chunks = [bound[b].argsort().split(CHUNK) for b in range(len(bound))]
     best_total = [torch.tensor(float(c)) for c in ceilings]
+    evaluated = [torch.tensor(math.inf) for _ in chunks]  # the lowest total evaluated
     picked: list[list[torch.Tensor]] = [[] for _ in chunks]
     costs: list[list[torch.Tensor]] = [[] for _ in chunks]
     running = list(range(len(chunks)))
@@ -291,10 +300,12 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
         if not asked:
             break
         bodies = torch.cat([torch.full((len(chunk),), b) for b, chunk in asked])
-        found = cost_at(bodies, torch.cat([chunk for _, chunk in asked]))
+        found = cost_at(bodies, torch.cat([chunk for _, chunk in asked]), torch.cat(
+            [evaluated[b] - bound[b, chunk] + SLACK for b, chunk in asked]))
         for (b, chunk), cost in zip(asked, found.split([len(c) for _, c in asked])):
             cost = cost + rays[b, chunk]
             best_total[b] = torch.minimum(best_total[b], (cost + prior[chunk]).min())
+            evaluated[b] = torch.minimum(evaluated[b], (cost + prior[chunk]).min())
             picked[b].append(chunk)
             costs[b].append(cost)
         running = [b for b, _ in asked]
@@ -338,18 +349,18 @@ def _underside(points: torch.Tensor, normals: torch.Tensor, carrying: torch.Tens
     return ids, lowest[ids]
 
 
-def _unsupported(points: torch.Tensor, signed: torch.Tensor,
-                 undersides: list[tuple[torch.Tensor, torch.Tensor]], scene: Scene, rho: float
-                 ) -> torch.Tensor:
+def _unsupported(points: torch.Tensor, undersides: list[tuple[torch.Tensor, torch.Tensor]],
+                 scene: Scene, rho: float) -> torch.Tensor:
     """(R,) robust gap (0: resting, 1: far) between the underside (:func:`_underside`)
-    of each scaled body, ``points`` (R, N, 3) camera frame with their signed distances
-    ``signed`` (R, N) and ``undersides`` (R) (LOWEST_SHARE of it: its lowest vertices
-    only), and the upward-facing scene surfaces nearest to them."""
+    of each scaled body, ``points`` (R, N, 3) camera frame, and ``undersides`` (R)
+    (LOWEST_SHARE of it: its lowest vertices only), and the upward-facing scene surfaces
+    nearest to them."""
     sizes = [len(ids) for ids, _ in undersides]
     rows = torch.repeat_interleave(torch.arange(len(points)), torch.tensor(sizes))
     ids = torch.cat([ids for ids, _ in undersides])
+    under = points[rows, ids]
     gaps = scene.contact_distance.nearest_upward(
-        scene.to_world(points[rows, ids]), signed[rows, ids].abs(),
+        scene.to_world(under), scene.signed_distance(under).abs(),
         torch.cat([low for _, low in undersides]), sizes, UPWARD)
     lowest, any_ = _miss(gaps, rho).unbind(1)
     return LOWEST_SHARE * lowest + (1 - LOWEST_SHARE) * any_

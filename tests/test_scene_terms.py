@@ -993,7 +993,8 @@ def test_scale_search_skips_only_scales_that_cannot_win():
     it picks what the whole grid picks, and evaluates fewer scales the better the best;
     under a ceiling on the total, the same where the least total is under it, and no
     total under it where it is not. Fifty bodies searched together are searched as each
-    alone, every round of the search in one call."""
+    alone, every round of the search in one call. A scale's cost may be left unfinished
+    (inf) where it is over the limit the search passes: the same pick."""
     from prox_engine.scale_search import CHUNK, SCALES, bounded_search
 
     count, bodies = len(SCALES), 50
@@ -1006,25 +1007,34 @@ def test_scale_search_skips_only_scales_that_cannot_win():
     whole = costs + hidden + prior
     least = whole.min(1).values
     evaluated: list[list[int]] = [[] for _ in range(bodies)]
-    calls = []
+    calls, over = [], []  # scales a call was asked for; scales over their limits
 
     def search(ceilings: torch.Tensor, first: int = 0) -> list:
         """The bodies from ``first`` on, one per ceiling, searched together."""
-        def cost_at(which: torch.Tensor, picked: torch.Tensor) -> torch.Tensor:
+        def cost_at(which: torch.Tensor, picked: torch.Tensor, limits: torch.Tensor
+                    ) -> torch.Tensor:
+            if not calls:  # nothing evaluated yet: no limit
+                assert limits.isinf().all()
             calls.append(len(picked))
             for b, i in zip(which.tolist(), picked.tolist()):
                 evaluated[first + b].append(i)
-            return costs[first + which, picked]
+            cost = costs[first + which, picked]
+            over.append(int((cost > limits).sum()))
+            return torch.where(cost > limits, math.inf, cost)  # as cost_at may
 
         evaluated[:] = [[] for _ in range(bodies)]
+        calls.clear()
         return bounded_search(cost_at, hidden[first:first + len(ceilings)], prior, ceilings)
 
     found = search(torch.full((bodies,), math.inf))
     assert len(calls) <= math.ceil(count / CHUNK)
     everywhere = [len(e) for e in evaluated]
+    assert sum(over) > bodies  # later rounds' limits leave scales unfinished
     for b, (picked, cost) in enumerate(found):
         assert picked.tolist() == sorted(set(evaluated[b]))
-        assert torch.equal(cost, costs[b, picked] + hidden[b, picked])
+        exact = costs[b, picked] + hidden[b, picked]
+        assert torch.equal(cost[cost.isfinite()], exact[cost.isfinite()])
+        assert (exact[cost.isinf()] + prior[picked][cost.isinf()] > least[b]).all()
         assert int(picked[(cost + prior[picked]).argmin()]) == int(whole[b].argmin())
     alone = search(torch.full((1,), math.inf), 7)[0]
     assert torch.equal(alone[0], found[7][0]) and torch.equal(alone[1], found[7][1])
@@ -1040,6 +1050,6 @@ def test_scale_search_skips_only_scales_that_cannot_win():
     assert all(len(picked) == 0 for picked, _ in search(below))
     flat = torch.ones(1, count)
     flat[0, 48] = 0.0  # a body that meets the scene at its fitted size
-    (picked, _), = bounded_search(lambda b, i: flat[b, i], torch.zeros(1, count), prior,
+    (picked, _), = bounded_search(lambda b, i, _: flat[b, i], torch.zeros(1, count), prior,
                                   torch.full((1,), math.inf))
     assert 48 in picked.tolist() and len(picked) < count / 2
