@@ -225,34 +225,52 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     undersides = ([_underside(placed[b], normals[b, sampled], carrying, scene)
                    for b in range(len(vertices))] if use_support else [])
 
+    def penetration(bodies: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        depth = torch.relu(-scene.signed_distance(scales * placed[bodies]) - PENETRATION_MARGIN)
+        return PENETRATION_WEIGHT * ((depth / PENETRATION_SCALE).clamp(max=1.0) * counted
+                                     ).mean(1)
+
+    def through(bodies: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        inside = scene.signed_distance(scales * axes[bodies]) < -PENETRATION_MARGIN
+        return AXIS_WEIGHT * inside.float().mean(1)
+
+    def missing(bodies: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        nearest = nearest_contacts(scales * touching[bodies], facing[bodies], part_sizes,
+                                   scene, max_angle_deg, max_distance)
+        misses = _miss(nearest, rho).T
+        if counted_parts is not None:
+            misses = torch.where(counted_parts[bodies].T, misses, 1.0)
+        return misses.mean(0)
+
+    def unsupported(bodies: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        return SUPPORT_WEIGHT * _unsupported(scales * placed[bodies],
+                                             [undersides[b] for b in bodies.tolist()],
+                                             scene, rho)
+
+    # summed in this order, worked out cheapest first
+    terms = [term for term, used in ((penetration, use_penetration),
+                                     (through, use_penetration and axes is not None),
+                                     (missing, use_contact and bool(contact_parts)),
+                                     (unsupported, use_support)) if used]
+    cheapest_first = sorted(terms, key=[unsupported, through, missing, penetration].index)
+
     def cost_at(bodies: torch.Tensor, picked: torch.Tensor, limits: torch.Tensor
                 ) -> torch.Tensor:
         """Contact, penetration and support costs (R,) of the ``bodies`` (R,) at
-        SCALES[picked] (R,); inf where contact, support and the axes alone exceed the
-        ``limits`` (R,), which the penetration term, read last, could only raise."""
+        SCALES[picked] (R,); inf where the terms worked out first already exceed the
+        ``limits`` (R,): the others, all >= 0, are not worked out there."""
         scales = SCALES[picked, None, None]
+        found = {}
+        partial, rows = torch.zeros(len(picked)), torch.arange(len(picked))
+        for term in cheapest_first:
+            found[term] = torch.zeros(len(picked)).index_put_(
+                (rows,), term(bodies[rows], scales[rows]))
+            partial[rows] += found[term][rows]
+            rows = rows[partial[rows] <= limits[rows]]
         cost = torch.zeros(len(picked))
-        scaled = scales * placed[bodies]  # (R, N, 3)
-        if use_contact and contact_parts:
-            nearest = nearest_contacts(scales * touching[bodies], facing[bodies], part_sizes,
-                                       scene, max_angle_deg, max_distance)
-            misses = _miss(nearest, rho).T
-            if counted_parts is not None:
-                misses = torch.where(counted_parts[bodies].T, misses, 1.0)
-            cost = cost + misses.mean(0)
-        if use_support:
-            cost = cost + SUPPORT_WEIGHT * _unsupported(
-                scaled, [undersides[b] for b in bodies.tolist()], scene, rho)
-        if use_penetration and axes is not None:
-            through = scene.signed_distance(scales * axes[bodies]) < -PENETRATION_MARGIN
-            cost = cost + AXIS_WEIGHT * through.float().mean(1)
-        if use_penetration:
-            open_ = torch.nonzero(cost <= limits).flatten()
-            depth = torch.relu(-scene.signed_distance(scaled[open_]) - PENETRATION_MARGIN)
-            inside = (depth / PENETRATION_SCALE).clamp(max=1.0) * counted
-            cost = torch.full_like(cost, math.inf).index_put_(
-                (open_,), cost[open_] + PENETRATION_WEIGHT * inside.mean(1))
-        return cost
+        for term in terms:
+            cost = cost + found[term]
+        return torch.full_like(cost, math.inf).index_put_((rows,), cost[rows])
 
     ceilings = torch.full((len(vertices),), math.inf) if ceilings is None else ceilings
     best, lowest_cost = [], []
