@@ -32,6 +32,25 @@ def _sum_into(values: torch.Tensor, slots: torch.Tensor, count: int) -> torch.Te
         0, flat, values.reshape(-1, 3)).view(batch, count, 3)
 
 
+def picked(points: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """``points[:, ids]`` for ``points`` (B, V, 3), differentiable. For several bodies by
+    index_select and :func:`_sum_into`: torch's advanced index and its accumulating
+    backward took 0.86 ms for the penetration term's 6,400 of 9,300 vertices on 8 bodies,
+    these 0.61; on one body they are 10-30 % slower."""
+    return points[:, ids] if len(points) == 1 else _Picked.apply(points, ids)
+
+
+class _Picked(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+        ctx.ids, ctx.count = ids, points.shape[1]
+        return points.index_select(1, ids)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        return _sum_into(grad.contiguous(), ctx.ids, ctx.count), None
+
+
 @wp.kernel
 def _vertex_normals(vertices: wp.array2d(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
                     first: wp.array(dtype=wp.int32), around: wp.array(dtype=wp.int32),

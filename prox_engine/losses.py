@@ -6,7 +6,7 @@ import math
 import torch
 
 from .body.base import BodyModel, BodyOutput
-from .geometry import VertexNormals, grid_subsample, vertex_normals
+from .geometry import VertexNormals, grid_subsample, picked, vertex_normals
 from .keypoints import BODY
 from .scene import Scene
 from .with_gradient import with_gradient
@@ -39,7 +39,7 @@ def penetration(out: BodyOutput, ids: torch.Tensor, weights: torch.Tensor, scene
     """Penetration energy (B,) of the body vertices ``ids``, each counted ``weights``
     times (:func:`penetration_vertices`) and tolerated ``tolerance`` deep (one for all, or
     one per vertex)."""
-    return penetration_energy(out.vertices[:, ids], scene, tolerance, weights)
+    return penetration_energy(picked(out.vertices, ids), scene, tolerance, weights)
 
 
 def penetration_energy(points: torch.Tensor, scene: Scene,
@@ -84,8 +84,8 @@ def contact(out: BodyOutput, scene: Scene, normals: VertexNormals, rho: float,
     ``sink`` deep: :func:`contact_distances`), (B,)."""
     with torch.no_grad():  # the normals only choose which vertices qualify
         facing = normals(out.vertices)
-    return contact_energy(out.vertices[:, normals.ids], facing, scene, rho, max_angle_deg,
-                          max_distance, sink)
+    return contact_energy(picked(out.vertices, normals.ids), facing, scene, rho,
+                          max_angle_deg, max_distance, sink)
 
 
 def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,

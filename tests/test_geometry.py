@@ -29,3 +29,19 @@ def test_rodrigues_gradient_is_autograds(angle):
     torch.testing.assert_close(mine.transpose(1, 2) @ mine,
                                torch.eye(3, dtype=torch.float64).expand(64, 3, 3))
     assert torch.autograd.gradcheck(axis_angle_to_matrix, (aa[:4].detach().requires_grad_(),))
+
+
+def test_picked_vertices_are_the_indexed_ones_with_their_gradient():
+    """``picked`` gathers and differentiates as ``points[:, ids]`` does, on one body and
+    on several, ids repeated included (their gradients add)."""
+    from prox_engine.geometry import picked
+
+    g = torch.Generator().manual_seed(0)
+    for bodies, ids in ((1, torch.tensor([5, 0, 9, 3])), (3, torch.tensor([7, 2, 7, 0, 11]))):
+        points = torch.randn(bodies, 12, 3, generator=g)
+        weights = torch.randn(bodies, len(ids), 3, generator=g)
+        ours, theirs = points.clone().requires_grad_(), points.clone().requires_grad_()
+        assert torch.equal(picked(ours, ids), theirs[:, ids])
+        (picked(ours, ids) * weights).sum().backward()
+        (theirs[:, ids] * weights).sum().backward()
+        assert torch.allclose(ours.grad, theirs.grad) and ours.grad[:, ids].abs().min() > 0
