@@ -246,7 +246,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
         return misses.mean(0)
 
     def unsupported(bodies: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-        return SUPPORT_WEIGHT * _unsupported(scales * placed[bodies],
+        return SUPPORT_WEIGHT * _unsupported(placed[bodies], scales[:, 0],
                                              [undersides[b] for b in bodies.tolist()],
                                              scene, rho)
 
@@ -300,13 +300,12 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
     ``cost_at`` (bodies (R,), indices (R,), limits (R,) -> (R,) costs >= 0 of contact,
     penetration and support, or inf where over the limit: the most each scale can cost and
     still beat the lowest total evaluated) and their costs with the body's ``rays`` ((B,
-    97)) added. The other terms
-    being >= 0, ``rays`` plus the size ``prior`` (97,) bounds each scale's total from
-    below: each body's scales are evaluated CHUNK at a time in the order of that bound,
-    and those whose bound exceeds the lowest total found, or the body's ``ceilings`` (B,),
-    are not, since they cannot win; each round evaluates every body's next chunk in one
-    call. The same pick as evaluating every scale, where it is under the ceiling; none
-    (empty) where no bound is."""
+    97)) added. The other terms being >= 0, ``rays`` plus the size ``prior`` (97,) bounds
+    each scale's total from below: each body's scales are evaluated in the order of that
+    bound, FIRST_CHUNK and then CHUNK at a time, and those whose bound exceeds the lowest
+    total found, or the body's ``ceilings`` (B,), are not, since they cannot win; each
+    round evaluates every body's next chunk in one call. The same pick as evaluating every
+    scale, where it is under the ceiling; none (empty) where no bound is."""
     bound = rays + prior
     sizes = [FIRST_CHUNK, *[CHUNK] * math.ceil((len(SCALES) - FIRST_CHUNK) / CHUNK)]
     sizes[-1] -= sum(sizes) - len(SCALES)
@@ -372,16 +371,17 @@ def _underside(points: torch.Tensor, normals: torch.Tensor, carrying: torch.Tens
     return ids, lowest[ids]
 
 
-def _unsupported(points: torch.Tensor, undersides: list[tuple[torch.Tensor, torch.Tensor]],
-                 scene: Scene, rho: float) -> torch.Tensor:
+def _unsupported(points: torch.Tensor, scales: torch.Tensor,
+                 undersides: list[tuple[torch.Tensor, torch.Tensor]], scene: Scene, rho: float
+                 ) -> torch.Tensor:
     """(R,) robust gap (0: resting, 1: far) between the underside (:func:`_underside`)
-    of each scaled body, ``points`` (R, N, 3) camera frame, and ``undersides`` (R)
-    (LOWEST_SHARE of it: its lowest vertices only), and the upward-facing scene surfaces
-    nearest to them."""
+    of each body, ``points`` (R, N, 3) camera frame scaled by ``scales`` (R, 1), and
+    ``undersides`` (R) (LOWEST_SHARE of it: its lowest vertices only), and the
+    upward-facing scene surfaces nearest to them."""
     sizes = [len(ids) for ids, _ in undersides]
     rows = torch.repeat_interleave(torch.arange(len(points)), torch.tensor(sizes))
     ids = torch.cat([ids for ids, _ in undersides])
-    under = points[rows, ids]
+    under = scales[rows] * points[rows, ids]
     gaps = scene.contact_distance.nearest_upward(
         scene.to_world(under), scene.signed_distance(under).abs(),
         torch.cat([low for _, low in undersides]), sizes, UPWARD)

@@ -350,17 +350,22 @@ def test_contact_pulls_near_vertex_and_ignores_far_one():
     assert contact_energy(near.detach(), up, scene, 0.05, 45, 0.15).item() == 0
 
 
-def test_contact_energy_is_the_torch_form_seen_by_a_tilted_camera():
-    """Points near a tilted box seen by a tilted, off-centre camera, two bodies of normals
-    turned every way, a sink on some points: the kernel's energy and gradient are those of
-    the term written in torch (the camera-frame SDF read with autograd, the facing test
-    against the world SDF's central differences), and a good share of points qualify."""
+def _tilted_box() -> tuple[trimesh.Trimesh, np.ndarray, Scene]:
+    """A tilted box, a tilted, off-centre camera looking at it, and the scene it makes."""
     from prox_engine.synthetic import look_at
 
     box = trimesh.creation.box(extents=(0.9, 0.6, 0.5))
     box.apply_transform(trimesh.transformations.rotation_matrix(0.5, [0.2, 1.0, 0.4]))
     cam2world = look_at(np.array([0.8, -2.4, 1.4]), np.array([0.1, 0.1, 0.0]))
-    scene = _seen_scene(box, cam2world, dim=48)
+    return box, cam2world, _seen_scene(box, cam2world, dim=48)
+
+
+def test_contact_energy_is_the_torch_form_seen_by_a_tilted_camera():
+    """Points near a tilted box seen by a tilted, off-centre camera, two bodies of normals
+    turned every way, a sink on some points: the kernel's energy and gradient are those of
+    the term written in torch (the camera-frame SDF read with autograd, the facing test
+    against the world SDF's central differences), and a good share of points qualify."""
+    box, cam2world, scene = _tilted_box()
     g = torch.Generator().manual_seed(0)
     world = torch.from_numpy(box.sample(600, seed=1)).float()
     world = world + 0.05 * torch.randn(len(world), 3, generator=g)
@@ -398,12 +403,7 @@ def test_nearest_contacts_and_upward_gaps_are_the_minima_over_every_point():
     nearest yet, are the minima of the all-points queries: near a tilted box seen by a
     tilted, off-centre camera, points in uneven parts (an empty one among them), normals
     turned every way."""
-    from prox_engine.synthetic import look_at
-
-    box = trimesh.creation.box(extents=(0.9, 0.6, 0.5))
-    box.apply_transform(trimesh.transformations.rotation_matrix(0.5, [0.2, 1.0, 0.4]))
-    cam2world = look_at(np.array([0.8, -2.4, 1.4]), np.array([0.1, 0.1, 0.0]))
-    scene = _seen_scene(box, cam2world, dim=48)
+    box, cam2world, scene = _tilted_box()
     g = torch.Generator().manual_seed(2)
     world = torch.from_numpy(box.sample(900, seed=3)).float()
     world = world + 0.06 * torch.randn(len(world), 3, generator=g)
