@@ -77,16 +77,17 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     rows = {}
     for name in configs:
         timed: dict[str, list[list[dict]]] = {mode: [] for mode in modes}  # [recording][round]
+        fit_configs = {mode: dataclasses.replace(load_config(name), batch_size=size,
+                                                 sdf_dim=sdf_dim)
+                       for mode, (size, _) in modes.items()}
         for rec in recordings:
             for mode in modes:
                 timed[mode].append([])
             for _ in range(rounds):
-                for mode, (size, sequence) in modes.items():
-                    config = dataclasses.replace(load_config(name), batch_size=size,
-                                                 sdf_dim=sdf_dim)
+                for mode, (_, sequence) in modes.items():
                     start = time.perf_counter()
-                    summary = fit_recording(data, rec, _fitted(out, name, mode), config, body,
-                                            sequence=sequence).summary
+                    summary = fit_recording(data, rec, _fitted(out, name, mode),
+                                            fit_configs[mode], body, sequence=sequence).summary
                     wall = time.perf_counter() - start
                     unit_after = measure_unit()
                     n = summary["frames_fitted"]

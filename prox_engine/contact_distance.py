@@ -64,10 +64,11 @@ def _contact(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
 
 @wp.kernel
 def _nearest_contact(points: wp.array2d(dtype=wp.vec3), normals: wp.array2d(dtype=wp.vec3),
-             starts: wp.array(dtype=wp.int32), grid: wp.array3d(dtype=wp.float32),
-             linear: wp.mat33, offset: wp.vec3, world_linear: wp.mat33, world_offset: wp.vec3,
-             rotation: wp.mat33, shift: wp.vec3, h: float, max_distance: float,
-             min_facing: float, nearest: wp.array2d(dtype=wp.float32)):
+                     starts: wp.array(dtype=wp.int32), grid: wp.array3d(dtype=wp.float32),
+                     linear: wp.mat33, offset: wp.vec3, world_linear: wp.mat33,
+                     world_offset: wp.vec3, rotation: wp.mat33, shift: wp.vec3, h: float,
+                     max_distance: float, min_facing: float,
+                     nearest: wp.array2d(dtype=wp.float32)):
     row, part = wp.tid()
     best = max_distance
     found = int(0)
@@ -106,8 +107,8 @@ _CONTACT = CpuKernel(_contact, (wp.vec3, wp.vec3, wp.float32, wp.float32, *[None
                                 wp.float32, wp.int32, wp.vec3))
 _UPWARD = CpuKernel(_upward, (wp.vec3, wp.float32, wp.int32, wp.int32, wp.float32,
                               *[None] * 4, wp.float32))
-_NEAREST = CpuKernel(_nearest_contact, (wp.vec3, wp.vec3, wp.int32, wp.float32, *[None] * 9,
-                                wp.float32))
+_NEAREST = CpuKernel(_nearest_contact, (wp.vec3, wp.vec3, wp.int32, wp.float32,
+                                         *[None] * 9, wp.float32))
 
 
 class ContactDistance:
@@ -150,10 +151,9 @@ class ContactDistance:
         not at every point within ``max_distance`` (two fifths of a body's contact
         vertices, each test six reads against the distance's one)."""
         rows = len(points)
-        starts = torch.tensor([0, *sizes], dtype=torch.int32).cumsum(0, dtype=torch.int32)
         found = torch.empty(rows, len(sizes))
         _NEAREST((rows, len(sizes)), points.float().contiguous(),
-                 normals.float().contiguous(), starts, *self._scene, float(max_distance),
+                 normals.float().contiguous(), _starts(sizes), *self._scene, float(max_distance),
                  float(min_facing), found)
         return found
 
@@ -165,8 +165,14 @@ class ContactDistance:
         normal points up (world z above ``min_up``), among the ``low`` (M,) bool points and
         among all: (len(sizes), 2), inf where none. A point's normal is read only when its
         gap is under the smallest found before it."""
-        starts = torch.tensor([0, *sizes], dtype=torch.int32).cumsum(0, dtype=torch.int32)
         found = torch.empty(len(sizes), 2)
         _UPWARD(len(sizes), world.float().contiguous(), gaps.float().contiguous(),
-                low.to(torch.int32).contiguous(), starts, *self._world, float(min_up), found)
+                low.to(torch.int32).contiguous(), _starts(sizes), *self._world,
+                float(min_up), found)
         return found
+
+
+def _starts(sizes: list[int]) -> torch.Tensor:
+    """(len(sizes) + 1,) int32: where each of consecutive groups of ``sizes`` begins, and
+    the end."""
+    return torch.tensor([0, *sizes], dtype=torch.int32).cumsum(0, dtype=torch.int32)

@@ -310,13 +310,13 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
     sizes = [FIRST_CHUNK, *[CHUNK] * math.ceil((len(SCALES) - FIRST_CHUNK) / CHUNK)]
     sizes[-1] -= sum(sizes) - len(SCALES)
     chunks = [bound[b].argsort().split(sizes) for b in range(len(bound))]
-    best_total = [torch.tensor(float(c)) for c in ceilings]
     evaluated = [torch.tensor(math.inf) for _ in chunks]  # the lowest total evaluated
     picked: list[list[torch.Tensor]] = [[] for _ in chunks]
     costs: list[list[torch.Tensor]] = [[] for _ in chunks]
     running = list(range(len(chunks)))
     for round_ in range(len(sizes)):
-        asked = [(b, chunks[b][round_][bound[b, chunks[b][round_]] <= best_total[b]])
+        asked = [(b, chunks[b][round_][bound[b, chunks[b][round_]]
+                                       <= torch.minimum(evaluated[b], ceilings[b])])
                  for b in running]
         asked = [(b, chunk) for b, chunk in asked if len(chunk)]
         if not asked:
@@ -326,7 +326,6 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
             [evaluated[b] - bound[b, chunk] + SLACK for b, chunk in asked]))
         for (b, chunk), cost in zip(asked, found.split([len(c) for _, c in asked])):
             cost = cost + rays[b, chunk]
-            best_total[b] = torch.minimum(best_total[b], (cost + prior[chunk]).min())
             evaluated[b] = torch.minimum(evaluated[b], (cost + prior[chunk]).min())
             picked[b].append(chunk)
             costs[b].append(cost)
@@ -390,7 +389,7 @@ def _unsupported(points: torch.Tensor, scales: torch.Tensor,
 
 
 def _miss(nearest: torch.Tensor, rho: float) -> torch.Tensor:
-    """How far each part, its best qualifying point ``nearest`` (m, inf when none
-    qualifies), is from touching: the robust distance (0 touching, toward 1 far away), 1
-    when none qualifies."""
+    """How far a set of points is from touching, given its nearest qualifying point's
+    distance ``nearest`` (m, inf when none qualifies): the robust distance (0 touching,
+    toward 1 far away), 1 when none qualifies."""
     return torch.where(nearest.isfinite(), gmof(nearest ** 2, rho) / rho ** 2, 1.0)

@@ -68,10 +68,10 @@ def preload() -> float:
     """In the worker before it forks: load the default body model and run it forwards and
     backwards once (which loads its compiled kernels), load L-BFGS's compiled directions
     (0.3 s a job otherwise), import the fit's modules and the report's rendering stack,
-    compile the report's templates, and freeze all that out of
-    the garbage collector's reach, so that a horse's full collections (pyrender runs one
-    as each report's renderer closes: 0.5 s over the loaded model, two fits running
-    beside it) walk only what its job made. Returns the seconds it took."""
+    compile the report's templates, and freeze all that out of the garbage collector's
+    reach, so that a horse's full collections (pyrender runs one as each report's renderer
+    closes: 0.5 s over the loaded model, two fits running beside it) walk only what its
+    job made. Returns the seconds it took."""
     import torch
 
     import prox_engine.pipeline  # noqa: F401  (the fit's modules: OpenCV among them)
