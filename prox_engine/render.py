@@ -2,7 +2,9 @@
 a side view (ceiling and walls in front of the body cut away), and the body over the RGB image.
 
 pyrender draws through OSMesa (Mesa's llvmpipe, on the CPU) unless ``PYOPENGL_PLATFORM``
-says otherwise (``egl`` on GPU nodes). OpenGL reads it when first imported, so this module
+says otherwise (``egl`` on GPU nodes). Every draw is unlit: the shading of a light at the
+camera is worked out once per view and vertex (:func:`headlit`), which makes a draw about a
+quarter of a lit one's time through llvmpipe. OpenGL reads it when first imported, so this module
 sets the default before importing pyrender. Keep one :class:`SceneRenderer` per process and
 never fork after rendering (a forked child's render hangs).
 """
@@ -32,6 +34,36 @@ FOV_Y = np.radians(45.0)  # top and side views
 _OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
+AMBIENT = 0.3
+LIGHT_INTENSITY = 2.0
+
+
+def headlit(colours: np.ndarray, normals: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Colours (N, 4) in [0, 1] of surface points with unit ``normals`` (N, 3), lit by a
+    directional light at a camera looking along ``forward`` plus ambient light, as
+    pyrender's lit shader draws vertex-coloured meshes (metallic 0.2, roughness 0.8,
+    vertex colours multiplying the light, gamma 2.2), the view direction taken as the
+    light's. Drawn unlit, they give the lit picture without its per-pixel cost."""
+    x = np.clip(normals @ -np.asarray(forward, dtype=float), 0.001, 1.0)
+    f0, c_diff, roughness = 0.232, 0.768, 0.8  # pyrender's mix of dielectric and metal
+    k = (roughness + 1) ** 2 / 8
+    occlusion = (x / (x * (1 - k) + k)) ** 2
+    a2 = roughness ** 4
+    facets = a2 / (np.pi * (x * x * (a2 - 1) + 1) ** 2)
+    light = AMBIENT + LIGHT_INTENSITY * x * ((1 - f0) * c_diff / np.pi
+                                             + f0 * occlusion * facets / (4 * x * x + 0.001))
+    lit = np.array(colours, dtype=np.float32)
+    lit[:, :3] = np.clip(lit[:, :3] * light[:, None], 0.0, 1.0) ** (1 / 2.2)
+    return lit
+
+
+def _unlit_mesh(positions: np.ndarray, colours: np.ndarray, faces: np.ndarray | None = None
+                ) -> pyrender.Mesh:
+    """A mesh drawn in its vertex colours (``faces`` None: every 3 positions a triangle)."""
+    return pyrender.Mesh([pyrender.Primitive(positions=positions, color_0=colours,
+                                             indices=faces)])
+
+
 @dataclass
 class BodyMesh:
     """A body to draw: world-frame vertices, its colour, optional vertices to paint."""
@@ -52,11 +84,13 @@ class BodyMesh:
         return colours
 
     @cached_property
-    def mesh(self) -> pyrender.Mesh:
-        """The coloured mesh, built once however many views draw it."""
-        mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_colors=self.colours(),
-                               process=False)
-        return pyrender.Mesh.from_trimesh(mesh, smooth=True)
+    def _normals(self) -> np.ndarray:
+        return trimesh.Trimesh(self.vertices, self.faces, process=False).vertex_normals
+
+    def mesh(self, forward: np.ndarray) -> pyrender.Mesh:
+        """The coloured mesh, smooth-shaded for a camera looking along ``forward``."""
+        return _unlit_mesh(self.vertices, headlit(self.colours(), self._normals, forward),
+                           self.faces)
 
     @cached_property
     def flag_mesh(self) -> pyrender.Mesh | None:
@@ -70,8 +104,7 @@ class BodyMesh:
         colours = np.tile([0.0, 0.0, 0.0, 1.0], (len(self.vertices), 1))
         for ids, colour in flagged:
             colours[np.asarray(ids, dtype=int), :3] = colour
-        mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_colors=colours, process=False)
-        return pyrender.Mesh.from_trimesh(mesh, smooth=True)
+        return _unlit_mesh(self.vertices, colours, self.faces)
 
 
 @dataclass
@@ -160,61 +193,68 @@ class SceneRenderer:
         self.width, self.height = width, height
         self.views = {"camera": camera_view(camera, cam2world, width, height),
                       **overview_views(bounds, cam2world, width, height)}
-        self.scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 0.0], ambient_light=[0.3] * 3)
+        self.scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 0.0])
+        colours = (np.tile([*SCENE_COLOUR, 1.0], (len(vertices), 1)) if colours is None
+                   else np.asarray(colours, dtype=float))
         self.scene_nodes = {}
         for name, view in self.views.items():
             kept = faces if name == "camera" else cut_away(vertices, faces, name, bounds,
                                                            view.pose)
-            mesh = trimesh.Trimesh(vertices, kept, process=False,
-                                   vertex_colors=colours if colours is not None
-                                   else np.tile([*SCENE_COLOUR, 1.0], (len(vertices), 1)))
-            self.scene_nodes[name] = self.scene.add(pyrender.Mesh.from_trimesh(mesh,
-                                                                               smooth=False))
+            corners = vertices[kept]  # (F, 3, 3): flat-shaded, each face its own vertices
+            normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+            lit = headlit(colours[kept].reshape(-1, 4), np.repeat(normals, 3, axis=0),
+                          view.pose[:3, 2])
+            self.scene_nodes[name] = self.scene.add(_unlit_mesh(corners.reshape(-1, 3), lit))
         self.camera_node = self.scene.add(pyrender.IntrinsicsCamera(1, 1, 0, 0, znear=0.05,
                                                                     zfar=100.0))
-        self.light = self.scene.add(pyrender.DirectionalLight(intensity=2.0))
         self.renderer = pyrender.OffscreenRenderer(width, height)
 
     def render(self, view: str, bodies: list[BodyMesh]) -> np.ndarray:
         """An RGB image (H, W, 3) uint8 of the bodies in the scene from ``view``, their
         flagged vertices shown through the scene (penetrating ones are inside it, hidden
         by the very surfaces they penetrate)."""
-        colour = self._draw(view, [b.mesh for b in bodies], with_scene=True)[0]
+        colour = self._draw(view, self._meshes(view, bodies), with_scene=True)[0]
         flagged = [b.flag_mesh for b in bodies if b.flag_mesh is not None]
         if not flagged:
             return colour
-        # Unlit, without the scene: the flags' exact legend colours wherever they project.
-        flat = self._draw(view, flagged, with_scene=False,
-                          flags=pyrender.RenderFlags.FLAT)[0].astype(int)
-        out = colour.astype(float)
+        # Without the scene: the flags' exact legend colours wherever they project.
+        flat, depth = self._draw(view, flagged, with_scene=False)
+        drawn = depth > 0
+        pixels = flat[drawn].astype(np.int16)
+        blended = colour[drawn].astype(float)
         for legend in (CONTACT_BLUE, PENETRATING_RED):
             target = np.array(legend) * 255
-            mask = np.abs(flat - target).max(-1) < 60
-            out[mask] = (1 - FLAG_OPACITY) * out[mask] + FLAG_OPACITY * target
-        return out.round().astype(np.uint8)
+            mask = np.abs(pixels - target).max(-1) < 60
+            blended[mask] = (1 - FLAG_OPACITY) * blended[mask] + FLAG_OPACITY * target
+        out = colour.copy()
+        out[drawn] = blended.round().astype(np.uint8)
+        return out
 
     def depth(self, view: str, bodies: list[BodyMesh]) -> tuple[np.ndarray, np.ndarray]:
         """Depth along the view's axis (H, W; 0 where nothing is) of the scene with the
         bodies in it, and of the bodies alone."""
-        meshes = [b.mesh for b in bodies]
+        meshes = self._meshes(view, bodies)
         return (self._draw(view, meshes, with_scene=True)[1],
                 self._draw(view, meshes, with_scene=False)[1])
 
-    def _draw(self, view: str, meshes: list[pyrender.Mesh], with_scene: bool,
-              flags: int = pyrender.RenderFlags.NONE) -> tuple[np.ndarray, np.ndarray]:
-        """Colour (H, W, 3) and depth (H, W; 0 where nothing was drawn)."""
+    def _meshes(self, view: str, bodies: list[BodyMesh]) -> list[pyrender.Mesh]:
+        forward = self.views[view].pose[:3, 2]
+        return [b.mesh(forward) for b in bodies]
+
+    def _draw(self, view: str, meshes: list[pyrender.Mesh], with_scene: bool
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Colour (H, W, 3) and depth (H, W; 0 where nothing was drawn), unlit."""
         v = self.views[view]
         self.camera_node.camera.fx, self.camera_node.camera.fy = v.fx, v.fy
         self.camera_node.camera.cx, self.camera_node.camera.cy = v.cx, v.cy
-        gl_pose = v.pose @ _OPENGL_FROM_OPENCV
-        self.scene.set_pose(self.camera_node, gl_pose)
-        self.scene.set_pose(self.light, gl_pose)
+        self.scene.set_pose(self.camera_node, v.pose @ _OPENGL_FROM_OPENCV)
         for name, node in self.scene_nodes.items():
             node.mesh.is_visible = with_scene and name == view
         nodes = [self.scene.add(mesh) for mesh in meshes]
         try:
             # OSMesa has no alpha channel: the depth buffer tells what was drawn.
-            colour, depth = self.renderer.render(self.scene, flags=flags)
+            colour, depth = self.renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
         finally:
             for node in nodes:
                 self.scene.remove_node(node)
@@ -232,7 +272,7 @@ class SceneRenderer:
             (round(w * scale), round(h * scale)), Image.BILINEAR))
         top, left = (self.height - resized.shape[0]) // 2, (self.width - resized.shape[1]) // 2
         canvas[top:top + resized.shape[0], left:left + resized.shape[1]] = resized
-        colour, depth = self._draw("camera", [b.mesh for b in bodies], with_scene=False)
+        colour, depth = self._draw("camera", self._meshes("camera", bodies), with_scene=False)
         # soft edges: the body's mask blurred by about a pixel
         mask = Image.fromarray(((depth > 0) * 255).astype(np.uint8)).filter(
             ImageFilter.GaussianBlur(1.0))

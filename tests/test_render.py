@@ -7,8 +7,8 @@ import pytest
 import trimesh
 
 from prox_engine.camera import Camera
-from prox_engine.render import (BASELINE_YELLOW, PENETRATING_RED, BodyMesh, SceneRenderer,
-                                cut_away)
+from prox_engine.render import (AMBIENT, BASELINE_YELLOW, LIGHT_INTENSITY, PENETRATING_RED,
+                                SCENE_COLOUR, BodyMesh, SceneRenderer, cut_away)
 from prox_engine.synthetic import look_at
 
 WIDTH, HEIGHT = 480, 270
@@ -93,6 +93,41 @@ def test_side_cut_removes_the_wall_in_front_and_keeps_the_one_behind(room):
     assert in_front(all_centroids).sum() > 10 and in_front(centroids).sum() == 0
     assert behind(centroids).sum() == behind(all_centroids).sum() > 10
     assert (centroids[:, 2] < 0.05).sum() == (all_centroids[:, 2] < 0.05).sum()  # the floor
+
+
+def test_unlit_draws_give_pyrenders_lit_picture(room):
+    """The light baked into colours (a light at the camera) draws what pyrender's lit shader
+    draws from the same scene: flat walls and a smooth ball, seen by an off-centre camera."""
+    import pyrender  # after prox_engine.render, which chooses OpenGL's platform
+
+    renderer, walls, _, _, _, _ = room
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.4)
+    ball.vertices += BODY_CENTRE + [0.3, 0.0, 0.2]
+    baked = renderer.render("camera", [_yellow(ball)])
+
+    def coloured(mesh: trimesh.Trimesh, colour: tuple, smooth: bool) -> "pyrender.Mesh":
+        colours = np.tile([*colour, 1.0], (len(mesh.vertices), 1))
+        return pyrender.Mesh.from_trimesh(trimesh.Trimesh(mesh.vertices, mesh.faces,
+                                                          vertex_colors=colours,
+                                                          process=False), smooth=smooth)
+
+    view = renderer.views["camera"]
+    pose = view.pose @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV to OpenGL axes
+    scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 0.0], ambient_light=[AMBIENT] * 3)
+    scene.add(coloured(walls, SCENE_COLOUR, smooth=False))
+    scene.add(coloured(ball, BASELINE_YELLOW, smooth=True))
+    scene.add(pyrender.IntrinsicsCamera(view.fx, view.fy, view.cx, view.cy, znear=0.05,
+                                        zfar=100.0), pose=pose)
+    scene.add(pyrender.DirectionalLight(intensity=LIGHT_INTENSITY), pose=pose)
+    gl = pyrender.OffscreenRenderer(WIDTH, HEIGHT)
+    try:
+        lit = gl.render(scene)[0]
+    finally:
+        gl.delete()
+    difference = np.abs(lit.astype(int) - baked.astype(int)).max(-1)
+    assert lit.std() > 10 and _is_yellow(lit[HEIGHT // 2, WIDTH // 2 + 30])
+    assert difference.mean() < 2 and np.percentile(difference, 99) < 10, (
+        difference.mean(), np.percentile(difference, 99))
 
 
 def test_flagged_vertices_are_painted(room):
