@@ -276,8 +276,13 @@ class SceneRenderer:
         # soft edges: the body's mask blurred by about a pixel
         mask = Image.fromarray(((depth > 0) * 255).astype(np.uint8)).filter(
             ImageFilter.GaussianBlur(1.0))
-        a = np.asarray(mask, dtype=float)[..., None] / 255 * alpha
-        return (canvas * (1 - a) + colour * a).astype(np.uint8)
+        opacity = np.asarray(mask)
+        rows, cols = np.flatnonzero(opacity.any(1)), np.flatnonzero(opacity.any(0))
+        if len(rows):  # blended only in the box around the body
+            box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+            a = opacity[box][..., None].astype(np.float32) * (alpha / 255)
+            canvas[box] = (canvas[box] * (1 - a) + colour[box] * a).astype(np.uint8)
+        return canvas
 
     def close(self) -> None:
         self.renderer.delete()

@@ -172,7 +172,9 @@ def render_frames(setting: Setting, frames: list[str], out: Path, flags: bool = 
                 thumb = None if prefix else out / f"{frame}_thumb.jpg"
                 image_path = _colour_image(setting.recording, frame)
                 if image_path is not None:
-                    image = Image.open(image_path).convert("RGB")
+                    image = Image.open(image_path)
+                    image.draft("RGB", size)  # a JPEG decoded at the smallest scale >= size
+                    image = image.convert("RGB")
                     if flip:
                         image = image.transpose(Image.FLIP_LEFT_RIGHT)
                     _save(renderer.overlay(np.asarray(image), [body]),
