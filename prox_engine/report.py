@@ -5,6 +5,7 @@ a baseline run of the same recording. Static files that open from disk; no exter
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import sys
@@ -226,8 +227,10 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
     (report / "frames").mkdir(exist_ok=True)
     setting = Setting.load(fit, data, names, base)
     fps = frame_rate([f["frame"] for f in frames]) / max(1, every)
-    with VideoWriter(report / "sequence.mp4", fps) as video:
-        timings = render_frames(setting, names, report / "images", flags, size, video)
+    video = len(names) > 1  # a one-frame video shows nothing the frame's page does not
+    with (VideoWriter(report / "sequence.mp4", fps) if video
+          else contextlib.nullcontext()) as writer:
+        timings = render_frames(setting, names, report / "images", flags, size, writer)
     start = time.perf_counter()
     viewer.write_assets(report, setting, names, flags)
     timings["viewer_seconds_per_frame"] = (time.perf_counter() - start) / max(1, len(names))
@@ -243,7 +246,7 @@ def build_report(results: Path, data: Path | None = None, baseline: Path | None 
               "colours": _legend_colours(baseline=False), "every": every}
     pages = {"index.html": env.get_template("sequence.html").render(
         **common, frames=rows, rendered=rendered, terms=terms, charts=_charts([fit]),
-        links=links or {}, compare=base.summary if base else None, fps=fps,
+        links=links or {}, compare=base.summary if base else None, fps=fps, video=video,
         rendered_names=set(names))}
     for i, name in enumerate(names):
         params = dict(fit.params(name))

@@ -86,6 +86,15 @@ def test_report_command_adds_the_comparison(cli_fits, tmp_path):
     assert 'href="compare.html"' in (results / "report" / "index.html").read_text()
 
 
+def test_a_report_of_one_rendered_frame_has_no_video(cli_fits, tmp_path):
+    prox, _ = cli_fits["prox"]
+    results = tmp_path / REC
+    shutil.copytree(prox / REC, results, ignore=shutil.ignore_patterns("report"))
+    index = build_report(results, every=2)  # renders the first of the two frames
+    assert not (results / "report" / "sequence.mp4").exists()
+    assert "<video" not in index.read_text() and _check_page(index)
+
+
 def test_report_names_the_missing_input(cli_fits, tmp_path):
     prox, _ = cli_fits["prox"]
     with pytest.raises(InputError, match="--data"):
