@@ -87,7 +87,8 @@ class SignedDistanceField:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"{json_path}: not a valid SDF description ({exc})") from exc
         try:
-            grid = np.load(npy_path, mmap_mode="r")
+            # Mapped copy-on-write: no copy of the file's 64 MB (256^3) made per job.
+            grid = np.load(npy_path, mmap_mode="c")
         except (OSError, ValueError) as exc:
             raise ValueError(f"{npy_path}: cannot read SDF grid ({exc})") from exc
         if grid.size != dim ** 3:
@@ -95,7 +96,7 @@ class SignedDistanceField:
         grid = np.asarray(grid, dtype=np.float32).reshape(dim, dim, dim)
         if not np.isfinite(grid).all() or not (bmax > bmin).all():
             raise ValueError(f"{npy_path}: SDF contains non-finite values or an empty box")
-        return cls(torch.from_numpy(grid.copy()), torch.from_numpy(bmin), torch.from_numpy(bmax))
+        return cls(torch.from_numpy(grid), torch.from_numpy(bmin), torch.from_numpy(bmax))
 
 
 def compute_sdf(vertices: np.ndarray, faces: np.ndarray, dim: int = 256,
