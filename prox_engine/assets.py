@@ -111,7 +111,7 @@ def setup(force: bool = False, say: Callable[[str], None] = lambda _: None) -> P
               Camera(1.0, 1.0, 0.0, 0.0), torch.zeros(1, 1, 2), one[None], one[None], one, one,
               up, up, 1.0, 1.0, 1.0)
     samples = np.eye(3)
-    grid = SampleGrid(samples, surface_tree(samples))
+    grid = SampleGrid.build(samples, surface_tree(samples))
     grid.query(np.zeros((1, 3)), 1)
     triangle = torch.eye(3, dtype=torch.float64)[None]
     nearest_faces(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.int64),

@@ -11,6 +11,9 @@ or one outside the grid is left to the tree (a third ring cost ten times what it
 The answer is the tree's: the same samples in the same order (up to exact ties)."""
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 import warp as wp
@@ -113,23 +116,45 @@ _NEAREST = CpuKernel(_nearest, (wp.vec3d, wp.vec3d, wp.int32, None, None, None, 
                                 wp.int64, wp.float64, wp.int32))
 
 
+@dataclass
 class SampleGrid:
-    """Surface ``samples`` (S, 3) in cells of about :data:`CELL`, with the k-d ``tree`` of
-    the same samples for the points the cells cannot answer."""
+    """Surface samples in cells of about :data:`CELL`, with the k-d ``tree`` of the same
+    samples for the points the cells cannot answer (:meth:`build` makes one)."""
 
-    def __init__(self, samples: np.ndarray, tree: cKDTree) -> None:
+    samples: torch.Tensor  # (S, 3) float64, in grid order
+    order: np.ndarray  # (S,) grid slot -> sample index
+    starts: torch.Tensor  # (cells + 1,) int32: each cell's first grid slot
+    origin: np.ndarray  # (3,) the grid's corner
+    dims: np.ndarray  # (3,) cells along x, y, z
+    cell: float  # m
+    tree: cKDTree
+
+    @classmethod
+    def build(cls, samples: np.ndarray, tree: cKDTree) -> SampleGrid:
+        """The grid of surface ``samples`` (S, 3); ``tree`` is their k-d tree."""
         samples = np.asarray(samples, dtype=np.float64)
         low, high = samples.min(0), samples.max(0)
         cell = max(CELL, float(np.prod(high - low + 2 * CELL) / MAX_CELLS) ** (1 / 3))
-        self.origin = low - cell
-        self.dims = (np.floor((high - self.origin) / cell).astype(np.int64) + 2)
-        cells = np.floor((samples - self.origin) / cell).astype(np.int64)
-        flat = (cells[:, 0] * self.dims[1] + cells[:, 1]) * self.dims[2] + cells[:, 2]
-        self.order = np.argsort(flat, kind="stable")  # grid slot -> sample index
-        counts = np.bincount(flat, minlength=int(np.prod(self.dims)))
-        self.starts = torch.from_numpy(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32))
-        self.samples = torch.from_numpy(samples[self.order])
-        self.cell, self.tree = cell, tree
+        origin = low - cell
+        dims = (np.floor((high - origin) / cell).astype(np.int64) + 2)
+        cells = np.floor((samples - origin) / cell).astype(np.int64)
+        flat = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+        order = np.argsort(flat, kind="stable")
+        counts = np.bincount(flat, minlength=int(np.prod(dims)))
+        starts = torch.from_numpy(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32))
+        return cls(torch.from_numpy(samples[order]), order, starts, origin, dims, cell, tree)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Everything but the tree, for :meth:`from_arrays` (a scene's cache keeps them)."""
+        return {"grid_samples": self.samples.numpy(), "order": self.order,
+                "starts": self.starts.numpy(), "origin": self.origin, "dims": self.dims,
+                "cell": np.float64(self.cell)}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], tree: cKDTree) -> SampleGrid:
+        return cls(torch.from_numpy(arrays["grid_samples"]), arrays["order"],
+                   torch.from_numpy(arrays["starts"]), arrays["origin"], arrays["dims"],
+                   float(arrays["cell"]), tree)
 
     def query(self, points: np.ndarray, k: int, workers: int = 1
               ) -> tuple[np.ndarray, np.ndarray]:

@@ -11,8 +11,7 @@ import torch
 from . import assets
 from .contact_distance import ContactDistance
 from .inside_depth import InsideDepth
-from .sample_grid import SampleGrid
-from .scene_sdf import (SignedDistanceField, cached_sdf, surface_samples, surface_tree,
+from .scene_sdf import (SignedDistanceField, cached_sdf, cached_surface,
                         triangle_signed_distance)
 
 
@@ -28,7 +27,8 @@ class Scene:
     """A static scene mesh (world frame, z up) seen by a camera with pose ``cam2world``."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, cam2world: np.ndarray,
-                 sdf: SignedDistanceField, sample_spacing: float = 0.02) -> None:
+                 sdf: SignedDistanceField, sample_spacing: float = 0.02,
+                 cache_dir: Path | None = None) -> None:
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.faces = np.asarray(faces, dtype=np.int64)
         self.cam2world = torch.tensor(cam2world, dtype=torch.float32)
@@ -39,8 +39,8 @@ class Scene:
         self._triangles64 = tri
         self._areas64 = normals.norm(dim=1) / 2
         self._normals64 = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        samples, self._sample_face = surface_samples(self.vertices, self.faces, sample_spacing)
-        self._samples = SampleGrid(samples, surface_tree(samples))
+        self._sample_face, self._samples = cached_surface(self.vertices, self.faces,
+                                                          sample_spacing, cache_dir)
         self.contact_distance = ContactDistance(self._camera_sdf, sdf.reader, self.cam2world,
                                                 sdf.voxel_size / 2)
         self._inside_depth = InsideDepth(
@@ -56,7 +56,7 @@ class Scene:
             sdf = SignedDistanceField.load(*sdf_paths)
         else:
             sdf = cached_sdf(vertices, faces, assets.sdf_cache_dir(), dim=dim)
-        return cls(vertices, faces, cam2world, sdf)
+        return cls(vertices, faces, cam2world, sdf, cache_dir=assets.sdf_cache_dir())
 
     def to_world(self, points: torch.Tensor) -> torch.Tensor:
         return points @ self.cam2world[:3, :3].T + self.cam2world[:3, 3]

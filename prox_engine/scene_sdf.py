@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -229,19 +230,45 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray,
     return points, face_ids
 
 
-def mesh_hash(vertices: np.ndarray, faces: np.ndarray, dim: int) -> str:
-    """Content hash of a mesh and grid size, the key of the SDF cache."""
+def mesh_hash(vertices: np.ndarray, faces: np.ndarray, made: str) -> str:
+    """Content hash of a mesh and of what is made of it (``made``): a cache key."""
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(vertices, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
-    h.update(f"dim={dim};v2".encode())
+    h.update(made.encode())
     return h.hexdigest()[:24]
+
+
+def cached_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float,
+                   cache_dir: Path | None) -> tuple[np.ndarray, SampleGrid]:
+    """The faces (S,) of a scene's :func:`surface_samples` and the samples' grid, from
+    ``cache_dir`` when made before, else made (and stored there, unless it is None): a
+    fresh work-horse made them for every job of a scene (0.12 s for a 43k-face room)."""
+    path = (None if cache_dir is None else
+            cache_dir / f"{mesh_hash(vertices, faces, f'samples={spacing!r};v1')}_samples.npz")
+    if path is not None and path.exists():
+        try:
+            with np.load(path) as stored:
+                arrays = dict(stored)
+            samples = arrays.pop("samples")
+            return arrays.pop("sample_face"), SampleGrid.from_arrays(arrays,
+                                                                     surface_tree(samples))
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+            pass  # a damaged cache entry is made again below
+    samples, sample_face = surface_samples(vertices, faces, spacing)
+    grid = SampleGrid.build(samples, surface_tree(samples))
+    if path is not None:
+        buffer = io.BytesIO()
+        np.savez(buffer, samples=samples, sample_face=sample_face, **grid.arrays())
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, buffer.getvalue())
+    return sample_face, grid
 
 
 def cached_sdf(vertices: np.ndarray, faces: np.ndarray, cache_dir: Path,
                dim: int = 256) -> SignedDistanceField:
     """The scene's SDF from ``cache_dir`` when computed before, else computed and stored."""
-    key = mesh_hash(vertices, faces, dim)
+    key = mesh_hash(vertices, faces, f"dim={dim};v2")
     json_path, npy_path = cache_dir / f"{key}.json", cache_dir / f"{key}_sdf.npy"
     if json_path.exists() and npy_path.exists():
         try:

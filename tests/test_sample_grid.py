@@ -26,7 +26,7 @@ def _room() -> np.ndarray:
 @pytest.fixture(scope="module")
 def room() -> tuple[np.ndarray, SampleGrid]:
     samples = _room()
-    return samples, SampleGrid(samples, surface_tree(samples))
+    return samples, SampleGrid.build(samples, surface_tree(samples))
 
 
 @pytest.mark.parametrize("k", [1, 4, 6, 8])
@@ -49,7 +49,7 @@ def test_a_large_room_gets_larger_cells(room, monkeypatch):
     """With a cap on the number of cells, the cells grow and the answers stay the tree's."""
     samples, _ = room
     monkeypatch.setattr(sample_grid, "MAX_CELLS", 2000)
-    grid = SampleGrid(samples, surface_tree(samples))
+    grid = SampleGrid.build(samples, surface_tree(samples))
     assert grid.cell > sample_grid.CELL and int(np.prod(grid.dims)) <= 2 * 2000
     points = samples[::50] + 0.01
     assert np.array_equal(grid.query(points, 4)[1], grid.tree.query(points, k=4)[1])
@@ -59,3 +59,28 @@ def test_more_neighbours_than_the_kernel_holds_are_refused(room):
     _, grid = room
     with pytest.raises(ValueError, match="1 to 8"):
         grid.query(np.zeros((1, 3)), sample_grid.MAX_K + 1)
+
+
+def test_a_scenes_samples_and_grid_come_back_from_the_cache_as_made(tmp_path):
+    """The cache gives the grid that making it gives (same answers), one file per mesh and
+    spacing; a damaged entry is made again."""
+    import trimesh
+
+    from prox_engine.scene_sdf import cached_surface
+
+    room = trimesh.creation.box(extents=(4.0, 3.0, 2.6)).subdivide()
+    vertices, faces = np.asarray(room.vertices), np.asarray(room.faces)
+    made_face, made = cached_surface(vertices, faces, 0.05, None)
+    assert not list(tmp_path.iterdir())
+    cached_surface(vertices, faces, 0.05, tmp_path)
+    (entry,) = tmp_path.iterdir()
+    face, grid = cached_surface(vertices, faces, 0.05, tmp_path)
+    assert np.array_equal(face, made_face) and np.array_equal(grid.order, made.order)
+    points = np.random.default_rng(3).uniform(-2.5, 2.5, (500, 3))
+    for answer, expected in zip(grid.query(points, 4), made.query(points, 4)):
+        assert np.array_equal(answer, expected)
+    assert grid.tree.n == made.tree.n == len(made_face)
+    entry.write_bytes(b"not a zip")
+    face, grid = cached_surface(vertices, faces, 0.05, tmp_path)
+    assert np.array_equal(face, made_face) and entry.stat().st_size > 1000
+    assert len(list(tmp_path.iterdir())) == 1
