@@ -2,11 +2,11 @@
 a side view (ceiling and walls in front of the body cut away), and the body over the RGB image.
 
 pyrender draws through OSMesa (Mesa's llvmpipe, on the CPU) unless ``PYOPENGL_PLATFORM``
-says otherwise (``egl`` on GPU nodes). Every draw is unlit: the shading of a light at the
-camera is worked out once per view and vertex (:func:`headlit`), which makes a draw about a
-quarter of a lit one's time through llvmpipe. OpenGL reads it when first imported, so this module
+says otherwise (``egl`` on GPU nodes). OpenGL reads it when first imported, so this module
 sets the default before importing pyrender. Keep one :class:`SceneRenderer` per process and
-never fork after rendering (a forked child's render hangs).
+never fork after rendering (a forked child's render hangs). Every draw is unlit: the shading
+of a light at the camera is worked out once per view and vertex (:func:`headlit`), which
+makes a draw about a quarter of a lit one's time through llvmpipe.
 """
 from __future__ import annotations
 
@@ -31,6 +31,7 @@ SCENE_COLOUR = (0.66, 0.62, 0.56)
 FLAG_OPACITY = 0.85  # flagged vertices over whatever hides them
 VIEWS = ("camera", "top", "side")  # the scene views; "overlay" is the camera's over the image
 FOV_Y = np.radians(45.0)  # top and side views
+NEAR = 0.05  # m: the cameras' near plane
 _OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -180,6 +181,23 @@ def cut_away(vertices: np.ndarray, faces: np.ndarray, view: str, bounds: np.ndar
     return faces[keep]
 
 
+def in_view(vertices: np.ndarray, faces: np.ndarray, view: View, width: int, height: int,
+            near: float) -> np.ndarray:
+    """Which ``faces`` (F,) a draw from ``view`` can show: those facing its camera (OpenGL
+    culls the others) and not wholly beyond one side of its frustum. Left out before
+    drawing, they cost neither upload nor shading."""
+    corners = vertices[faces]  # (F, 3, 3) world
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    facing = np.einsum("ij,ij->i", normals, view.pose[:3, 3] - corners[:, 0]) >= 0
+    local = (corners - view.pose[:3, 3]) @ view.pose[:3, :3]  # camera frame (OpenCV)
+    x, y, z = local[..., 0], local[..., 1], local[..., 2]
+    outside = ((z < near).all(1) | (x < -view.cx / view.fx * z).all(1)
+               | (x > (width - view.cx) / view.fx * z).all(1)
+               | (y < -view.cy / view.fy * z).all(1)
+               | (y > (height - view.cy) / view.fy * z).all(1))
+    return facing & ~outside
+
+
 class SceneRenderer:
     """Renders one recording's scene with bodies in it, from the camera, the top and the side.
 
@@ -200,13 +218,14 @@ class SceneRenderer:
         for name, view in self.views.items():
             kept = faces if name == "camera" else cut_away(vertices, faces, name, bounds,
                                                            view.pose)
+            kept = kept[in_view(vertices, kept, view, width, height, NEAR)]
             corners = vertices[kept]  # (F, 3, 3): flat-shaded, each face its own vertices
             normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
             lit = headlit(colours[kept].reshape(-1, 4), np.repeat(normals, 3, axis=0),
                           view.pose[:3, 2])
             self.scene_nodes[name] = self.scene.add(_unlit_mesh(corners.reshape(-1, 3), lit))
-        self.camera_node = self.scene.add(pyrender.IntrinsicsCamera(1, 1, 0, 0, znear=0.05,
+        self.camera_node = self.scene.add(pyrender.IntrinsicsCamera(1, 1, 0, 0, znear=NEAR,
                                                                     zfar=100.0))
         self.renderer = pyrender.OffscreenRenderer(width, height)
 

@@ -7,8 +7,9 @@ import pytest
 import trimesh
 
 from prox_engine.camera import Camera
-from prox_engine.render import (AMBIENT, BASELINE_YELLOW, LIGHT_INTENSITY, PENETRATING_RED,
-                                SCENE_COLOUR, BodyMesh, SceneRenderer, cut_away)
+from prox_engine.render import (AMBIENT, BASELINE_YELLOW, LIGHT_INTENSITY, NEAR,
+                                PENETRATING_RED, SCENE_COLOUR, BodyMesh, SceneRenderer,
+                                cut_away, in_view)
 from prox_engine.synthetic import look_at
 
 WIDTH, HEIGHT = 480, 270
@@ -128,6 +129,22 @@ def test_unlit_draws_give_pyrenders_lit_picture(room):
     assert lit.std() > 10 and _is_yellow(lit[HEIGHT // 2, WIDTH // 2 + 30])
     assert difference.mean() < 2 and np.percentile(difference, 99) < 10, (
         difference.mean(), np.percentile(difference, 99))
+
+
+def test_faces_a_view_cannot_show_are_left_out(room):
+    """Faces behind the camera, and faces turned away from it, are not drawn; the far wall
+    where the camera looks is."""
+    renderer, walls, _, _, _, _ = room
+    view = renderer.views["camera"]
+    vertices, faces = np.asarray(walls.vertices), np.asarray(walls.faces)
+    kept = in_view(vertices, faces, view, WIDTH, HEIGHT, NEAR)
+    x, y, z = vertices[faces].mean(1).T
+    behind, looked_at = y < -2.4, (y > 2.4) & (np.abs(x) < 0.5) & (np.abs(z - 0.4) < 0.3)
+    assert behind.sum() > 10 and not kept[behind].any()
+    assert looked_at.sum() > 2 and kept[looked_at].all()
+    assert 0 < kept.sum() < len(faces)
+    # The same walls wound the other way face out of the room: none is drawn from inside.
+    assert not in_view(vertices, faces[:, ::-1], view, WIDTH, HEIGHT, NEAR).any()
 
 
 def test_flagged_vertices_are_painted(room):
