@@ -443,11 +443,9 @@ def test_exact_distance_uses_surface_not_vertices():
     assert torch.allclose(d, torch.tensor([0.02, -0.02]), atol=1e-5)
 
 
-def test_statistics_see_a_thin_tabletop(body):
-    """A body whose thighs pass through a 3 cm tabletop in a 6 m room: the SDF grid (5 cm
-    voxels) barely sees it, the statistics do."""
-    from prox_engine import metrics
-
+def _thighs_through_a_tabletop(body) -> tuple[torch.Tensor, Scene, trimesh.Trimesh]:
+    """A body whose thighs pass through a 3 cm tabletop in a 6 m room (5 cm voxels): its
+    vertices, the scene and the tabletop."""
     room = trimesh.creation.box([6.0, 6.0, 3.0])
     room.vertices += [0.0, 0.0, 1.5]
     room.invert()
@@ -460,6 +458,14 @@ def test_statistics_see_a_thin_tabletop(body):
     scene_mesh = trimesh.util.concatenate([room.subdivide_to_size(0.5), top])
     sdf = compute_sdf(scene_mesh.vertices, scene_mesh.faces, dim=128, padding=0.2)
     scene = Scene(scene_mesh.vertices, scene_mesh.faces, np.eye(4), sdf, sample_spacing=0.02)
+    return verts, scene, top
+
+
+def test_statistics_see_a_thin_tabletop(body):
+    """The SDF grid barely sees a 3 cm tabletop through the thighs, the statistics do."""
+    from prox_engine import metrics
+
+    verts, scene, top = _thighs_through_a_tabletop(body)
     inside = (torch.tensor(np.abs(top.vertices - top.centroid).max(0)) + 1e-3
               >= (verts - torch.tensor(top.centroid, dtype=torch.float32)).abs()).all(1)
     inside &= body.scene_vertices
@@ -470,6 +476,44 @@ def test_statistics_see_a_thin_tabletop(body):
     assert float((grid < -metrics.PENETRATION_THRESHOLD).float().mean()) < 0.1
     stats = metrics.penetration_stats(verts, body, scene)
     assert stats["penetrating_share"] * int(body.scene_vertices.sum()) >= 0.3 * int(inside.sum())
+
+
+def test_frame_statistics_are_those_of_exact_distances(body):
+    """A frame's statistics read the SDF grid where it puts a vertex far outside (most of a
+    body in a room): the same penetration, depth and touching vertices as exact distances
+    everywhere give, the thighs in a tabletop the grid barely sees included."""
+    from prox_engine import metrics
+
+    verts, scene, _ = _thighs_through_a_tabletop(body)
+    stats, flagged = metrics.scene_stats(verts, body, scene)
+    ids = torch.nonzero(body.scene_vertices).flatten()
+    exact = scene.exact_signed_distance(verts[ids])
+    assert stats == {**metrics._penetration(exact), "contact_parts": stats["contact_parts"]}
+    assert stats["penetrating_share"] > 0
+    assert flagged["penetrating"] == ids[exact < -metrics.PENETRATION_THRESHOLD].tolist()
+    contact = torch.cat(list(body.contact_parts.values())).unique()
+    touching = contact[scene.exact_signed_distance(verts[contact]) < metrics.CONTACT_THRESHOLD]
+    assert flagged["contact"] == sorted(touching.tolist()) and len(touching)
+    far = scene.signed_distance(verts[ids]) > (metrics.CONTACT_THRESHOLD + 2 * 3 ** 0.5
+                                               * scene.sdf.voxel_size)
+    assert far.float().mean() > 0.3  # the grid's reading was used
+
+
+def test_frame_statistics_read_exact_distances_where_the_grid_is_coarse():
+    """Beside a 1 cm rod on a grid of 20 cm voxels the grid's trilinear reading is several
+    times the true distance: points 15 mm away read as exact, touching."""
+    from prox_engine import metrics
+
+    rod = trimesh.creation.box([0.01, 0.01, 2.0])
+    sdf = compute_sdf(rod.vertices, rod.faces, dim=16, padding=0.5)
+    scene = Scene(rod.vertices, rod.faces, np.eye(4), sdf, sample_spacing=0.005)
+    beside = torch.tensor([[0.02, 0.0, z] for z in np.linspace(-0.9, 0.9, 19)],
+                          dtype=torch.float32)
+    assert sdf.voxel_size > 0.15
+    assert (scene.signed_distance(beside) > metrics.CONTACT_THRESHOLD).all()
+    read = metrics._distances(beside, scene, torch.arange(len(beside)))
+    assert torch.equal(read, scene.exact_signed_distance(beside))
+    assert (read < metrics.CONTACT_THRESHOLD).all()
 
 
 def test_exact_sign_holds_in_the_air_above_a_noisy_chair(sitting_data):
