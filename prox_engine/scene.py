@@ -24,7 +24,8 @@ RAY_MARGIN = 0.06  # m before a joint (its own flesh) and after the camera that 
 
 
 class Scene:
-    """A static scene mesh (world frame, z up) seen by a camera with pose ``cam2world``."""
+    """A static scene mesh (world frame, z up) seen by a camera with pose ``cam2world``;
+    ``cache_dir`` keeps its surface samples' grid between runs (:func:`cached_surface`)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, cam2world: np.ndarray,
                  sdf: SignedDistanceField, sample_spacing: float = 0.02,
