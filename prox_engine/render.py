@@ -181,13 +181,17 @@ def cut_away(vertices: np.ndarray, faces: np.ndarray, view: str, bounds: np.ndar
     return faces[keep]
 
 
-def in_view(vertices: np.ndarray, faces: np.ndarray, view: View, width: int, height: int,
+def face_normals(corners: np.ndarray) -> np.ndarray:
+    """Normals (F, 3), not unit, of triangles ``corners`` (F, 3, 3), by their winding."""
+    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+
+def in_view(corners: np.ndarray, normals: np.ndarray, view: View, width: int, height: int,
             near: float) -> np.ndarray:
-    """Which ``faces`` (F,) a draw from ``view`` can show: those facing its camera (OpenGL
-    culls the others) and not wholly beyond one side of its frustum. Left out before
-    drawing, they cost neither upload nor shading."""
-    corners = vertices[faces]  # (F, 3, 3) world
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    """Which faces (F,), world-frame ``corners`` (F, 3, 3) with :func:`face_normals`, a
+    draw from ``view`` can show: those facing its camera (OpenGL culls the others) and not
+    wholly beyond one side of its frustum. Left out before drawing, they cost neither
+    upload nor shading."""
     facing = np.einsum("ij,ij->i", normals, view.pose[:3, 3] - corners[:, 0]) >= 0
     local = (corners - view.pose[:3, 3]) @ view.pose[:3, :3]  # camera frame (OpenCV)
     x, y, z = local[..., 0], local[..., 1], local[..., 2]
@@ -218,9 +222,10 @@ class SceneRenderer:
         for name, view in self.views.items():
             kept = faces if name == "camera" else cut_away(vertices, faces, name, bounds,
                                                            view.pose)
-            kept = kept[in_view(vertices, kept, view, width, height, NEAR)]
             corners = vertices[kept]  # (F, 3, 3): flat-shaded, each face its own vertices
-            normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            normals = face_normals(corners)
+            shown = in_view(corners, normals, view, width, height, NEAR)
+            kept, corners, normals = kept[shown], corners[shown], normals[shown]
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
             lit = headlit(colours[kept].reshape(-1, 4), np.repeat(normals, 3, axis=0),
                           view.pose[:3, 2])

@@ -53,11 +53,12 @@ class Scene:
     def load(cls, vertices: np.ndarray, faces: np.ndarray, cam2world: np.ndarray,
              sdf_paths: tuple[Path, Path] | None = None, dim: int = 256) -> "Scene":
         """Use the recording's PROX SDF files when present, else the SDF cache."""
+        cache_dir = assets.sdf_cache_dir()
         if sdf_paths is not None and all(p.exists() for p in sdf_paths):
             sdf = SignedDistanceField.load(*sdf_paths)
         else:
-            sdf = cached_sdf(vertices, faces, assets.sdf_cache_dir(), dim=dim)
-        return cls(vertices, faces, cam2world, sdf, cache_dir=assets.sdf_cache_dir())
+            sdf = cached_sdf(vertices, faces, cache_dir, dim=dim)
+        return cls(vertices, faces, cam2world, sdf, cache_dir=cache_dir)
 
     def to_world(self, points: torch.Tensor) -> torch.Tensor:
         return points @ self.cam2world[:3, :3].T + self.cam2world[:3, 3]

@@ -250,7 +250,8 @@ def cached_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float,
         try:
             with np.load(path) as stored:
                 arrays = dict(stored)
-            samples = arrays.pop("samples")
+            samples = np.empty_like(arrays["grid_samples"])  # the tree's order, the made one
+            samples[arrays["order"]] = arrays["grid_samples"]
             return arrays.pop("sample_face"), SampleGrid.from_arrays(arrays,
                                                                      surface_tree(samples))
         except (OSError, ValueError, KeyError, zipfile.BadZipFile):
@@ -259,7 +260,7 @@ def cached_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float,
     grid = SampleGrid.build(samples, surface_tree(samples))
     if path is not None:
         buffer = io.BytesIO()
-        np.savez(buffer, samples=samples, sample_face=sample_face, **grid.arrays())
+        np.savez(buffer, sample_face=sample_face, **grid.arrays())
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, buffer.getvalue())
     return sample_face, grid

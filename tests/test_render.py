@@ -9,7 +9,7 @@ import trimesh
 from prox_engine.camera import Camera
 from prox_engine.render import (AMBIENT, BASELINE_YELLOW, LIGHT_INTENSITY, NEAR,
                                 PENETRATING_RED, SCENE_COLOUR, BodyMesh, SceneRenderer,
-                                cut_away, in_view)
+                                cut_away, face_normals, in_view)
 from prox_engine.synthetic import look_at
 
 WIDTH, HEIGHT = 480, 270
@@ -137,14 +137,16 @@ def test_faces_a_view_cannot_show_are_left_out(room):
     renderer, walls, _, _, _, _ = room
     view = renderer.views["camera"]
     vertices, faces = np.asarray(walls.vertices), np.asarray(walls.faces)
-    kept = in_view(vertices, faces, view, WIDTH, HEIGHT, NEAR)
+    corners = vertices[faces]
+    kept = in_view(corners, face_normals(corners), view, WIDTH, HEIGHT, NEAR)
     x, y, z = vertices[faces].mean(1).T
     behind, looked_at = y < -2.4, (y > 2.4) & (np.abs(x) < 0.5) & (np.abs(z - 0.4) < 0.3)
     assert behind.sum() > 10 and not kept[behind].any()
     assert looked_at.sum() > 2 and kept[looked_at].all()
     assert 0 < kept.sum() < len(faces)
     # The same walls wound the other way face out of the room: none is drawn from inside.
-    assert not in_view(vertices, faces[:, ::-1], view, WIDTH, HEIGHT, NEAR).any()
+    outward = vertices[faces[:, ::-1]]
+    assert not in_view(outward, face_normals(outward), view, WIDTH, HEIGHT, NEAR).any()
 
 
 def test_flagged_vertices_are_painted(room):
