@@ -225,6 +225,8 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     errors = _errors(fitter, results[0], frame)
     why = refit_reason(fitter.config, float(errors.nanmean()), anchor_px,
                        previous.swapped, results[0].swapped, metrics.limb_errors(errors))
+    if not why and fitter.config.sequence_refit and fitter.config.sequence_label_check:
+        why = _disputed_labelling(fitter, frame, results[0])
     if why:
         fresh = fitter.fit([frame])
         fresh[0].events.append(f"sequence: refitted from scratch, {why}")
@@ -233,6 +235,26 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     if fitter.config.sequence_refit and fitter.config.sequence_floating_refit:
         return _unless_floating(fitter, frame, results)
     return results
+
+
+def _disputed_labelling(fitter: Fitter, frame: Frame, result: FitResult) -> str:
+    """Why the warm fit ``result`` should not stand ('' if it should): its labelling,
+    taken from its neighbour's fit, overrides the detector's left and right of a part
+    that the frame's own start search (``Fitter.start_labelling``, charged to ``result``;
+    a fit from scratch reuses it) keeps as detected. A neighbour whose fit missed a swap
+    of the detector's has its legs crossed, and the next frames, labelled to match it,
+    keep them crossed; where the detector did swap a part, the start search mostly sees
+    it too."""
+    if not result.swapped:
+        return ""
+    t0 = time.perf_counter()
+    own = fitter.start_labelling(frame)
+    _charge(result, "label_check", time.perf_counter() - t0, fitter.evaluations)
+    disputed = sorted(set(result.swapped) - set(own))
+    if not disputed:
+        return ""
+    return (f"its neighbour's fit overrode the detector's left and right of the "
+            f"{' and '.join(disputed)}, which the frame's own start search keeps")
 
 
 def _unless_floating(fitter: Fitter, frame: Frame, results: list[FitResult]

@@ -1155,6 +1155,47 @@ def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor
     assert float((kept.keypoints[:25] - truth).norm(dim=1).mean()) < 0.08
 
 
+def test_sequence_mode_refits_a_frame_whose_chain_overrides_its_own_start_search(body):
+    """A neighbour fitted, as detected, to keypoints whose legs the detector exchanged
+    has its legs crossed; warm-started from it, the next frame (detected rightly) is
+    labelled to match, its legs taken as swapped. Its own start search keeps them as
+    detected, so it is fitted again from scratch and ends on its keypoints; the ablation
+    (`prox-no-label-check`) keeps the crossed legs, 15-20 cm a joint off. Where the
+    detector did exchange them, the start search agrees with the chain and the warm fit
+    stands, the search charged to it."""
+    from dataclasses import replace
+
+    from prox_engine.keypoints import side_swap
+    from prox_engine.pipeline import _fit_from
+
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    _, keypoints = standing_person(body, cam2world, yaw=0.4)
+    swapped = frame_of(keypoints)
+    swapped.keypoints.data[:] = swapped.keypoints.data[side_swap(("legs",))]
+    as_detected = replace(load_config("prox"), swap_sides=False)
+    crossed = Fitter(body, CAMERA, as_detected, scene).fit([swapped])[0]
+
+    def fit(config: str, frame: Frame, previous):
+        return _fit_from(Fitter(body, CAMERA, load_config(config), scene), frame, previous,
+                         anchor_px=1.0)[0]
+
+    def error(result) -> float:
+        return float((result.keypoints[:25] - keypoints[:25]).norm(dim=1).mean())
+
+    checked, ablation = (fit(c, frame_of(keypoints), crossed)
+                         for c in ("prox", "prox-no-label-check"))
+    assert ablation.swapped == ["legs"] and error(ablation) > 0.1
+    assert checked.swapped == [] and error(checked) < 0.03
+    assert any("own start search keeps" in e for e in checked.events), checked.events
+    assert checked.stage_evaluations["discarded_fit"] > 0
+
+    kept = fit("prox", swapped, fit("prox", frame_of(keypoints), checked))
+    assert kept.swapped == ["legs"] and error(kept) < 0.03
+    assert kept.stage_evaluations["label_check"] > 0
+    assert "discarded_fit" not in kept.stage_evaluations
+
+
 def test_the_start_choice_leaves_out_the_posture_priors(body):
     """A crouching mean body on the floor, exact keypoints, seen by a tilted, off-centre
     camera: compared without the posture priors (pose, bending), which charge a crouch
