@@ -145,16 +145,32 @@ class SampleGrid:
         return cls(torch.from_numpy(samples[order]), order, starts, origin, dims, cell, tree)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """Everything but the tree, for :meth:`from_arrays` (a scene's cache keeps them)."""
-        return {"grid_samples": self.samples.numpy(), "order": self.order,
-                "starts": self.starts.numpy(), "origin": self.origin, "dims": self.dims,
-                "cell": np.float64(self.cell)}
+        """Plain arrays (no pickle) of everything, the tree's own state included, for
+        :meth:`from_arrays`: a scene's cache keeps them, and a work-horse then restores
+        the tree of a 120,000-sample room in 5 ms instead of building it in 30-48."""
+        (buffer, data, _, _, leafsize, maxes, mins, indices,
+         boxsize, _) = self.tree.__getstate__()
+        if boxsize is not None:
+            raise ValueError("a periodic k-d tree is not a scene's")
+        return {"tree_buffer": buffer, "tree_data": data, "tree_indices": indices,
+                "tree_maxes": maxes, "tree_mins": mins, "tree_leafsize": np.int64(leafsize),
+                "order": self.order, "starts": self.starts.numpy(), "origin": self.origin,
+                "dims": self.dims, "cell": np.float64(self.cell)}
 
     @classmethod
-    def from_arrays(cls, arrays: Mapping[str, np.ndarray], tree: cKDTree) -> SampleGrid:
-        return cls(torch.from_numpy(arrays["grid_samples"]), arrays["order"],
-                   torch.from_numpy(arrays["starts"]), arrays["origin"], arrays["dims"],
-                   float(arrays["cell"]), tree)
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> SampleGrid:
+        """The grid :meth:`arrays` gave; a ValueError, KeyError or TypeError if they are
+        damaged or a scipy of another layout wrote them."""
+        data = np.asarray(arrays["tree_data"], dtype=np.float64)
+        order = arrays["order"]
+        if data.ndim != 2 or data.shape[1] != 3 or order.shape != (len(data),):
+            raise ValueError("the samples and their grid order disagree")
+        tree = cKDTree.__new__(cKDTree)
+        tree.__setstate__((arrays["tree_buffer"], data, len(data), 3,
+                           int(arrays["tree_leafsize"]), arrays["tree_maxes"],
+                           arrays["tree_mins"], arrays["tree_indices"], None, None))
+        return cls(torch.from_numpy(data[order]), order, torch.from_numpy(arrays["starts"]),
+                   arrays["origin"], arrays["dims"], float(arrays["cell"]), tree)
 
     def query(self, points: np.ndarray, k: int, workers: int = 1
               ) -> tuple[np.ndarray, np.ndarray]:

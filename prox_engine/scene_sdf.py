@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy
 import torch
 from scipy.spatial import cKDTree
 
@@ -244,17 +245,15 @@ def cached_surface(vertices: np.ndarray, faces: np.ndarray, spacing: float,
     """The faces (S,) of a scene's :func:`surface_samples` and the samples' grid, from
     ``cache_dir`` when made before, else made (and stored there, unless it is None): a
     fresh work-horse made them for every job of a scene (0.12 s for a 43k-face room)."""
+    made = f"samples={spacing!r};scipy={scipy.__version__};v2"
     path = (None if cache_dir is None else
-            cache_dir / f"{mesh_hash(vertices, faces, f'samples={spacing!r};v1')}_samples.npz")
+            cache_dir / f"{mesh_hash(vertices, faces, made)}_samples.npz")
     if path is not None and path.exists():
         try:
             with np.load(path) as stored:
                 arrays = dict(stored)
-            samples = np.empty_like(arrays["grid_samples"])  # the tree's order, the made one
-            samples[arrays["order"]] = arrays["grid_samples"]
-            return arrays.pop("sample_face"), SampleGrid.from_arrays(arrays,
-                                                                     surface_tree(samples))
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+            return arrays.pop("sample_face"), SampleGrid.from_arrays(arrays)
+        except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile):
             pass  # a damaged cache entry is made again below
     samples, sample_face = surface_samples(vertices, faces, spacing)
     grid = SampleGrid.build(samples, surface_tree(samples))

@@ -62,8 +62,8 @@ def test_more_neighbours_than_the_kernel_holds_are_refused(room):
 
 
 def test_a_scenes_samples_and_grid_come_back_from_the_cache_as_made(tmp_path):
-    """The cache gives the grid that making it gives (same answers), one file per mesh and
-    spacing; a damaged entry is made again."""
+    """The cache gives the grid that making it gives (same answers, its k-d tree's too),
+    one file per mesh and spacing; a damaged entry is made again."""
     import trimesh
 
     from prox_engine.scene_sdf import cached_surface
@@ -80,6 +80,8 @@ def test_a_scenes_samples_and_grid_come_back_from_the_cache_as_made(tmp_path):
     for answer, expected in zip(grid.query(points, 4), made.query(points, 4)):
         assert np.array_equal(answer, expected)
     assert grid.tree.n == made.tree.n == len(made_face)
+    for answer, expected in zip(grid.tree.query(points, 6), made.tree.query(points, 6)):
+        assert np.array_equal(answer, expected)  # the tree restored, not rebuilt, answers alike
     entry.write_bytes(b"not a zip")
     face, grid = cached_surface(vertices, faces, 0.05, tmp_path)
     assert np.array_equal(face, made_face) and entry.stat().st_size > 1000
