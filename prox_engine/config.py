@@ -88,10 +88,11 @@ class FitConfig:
     # from scratch if that floats less (see pipeline._unless_floating).
     sequence_floating_refit: bool = True
     # ... and when the labelling taken from its neighbour's fit overrides the detector's
-    # left and right of a part that the frame's own start search keeps as detected: a
-    # neighbour fitted with its legs crossed (a swap the detector made and its fit missed)
-    # otherwise passes them on (seed 3's leg-up sitter, five frames 240 mm worse than
-    # single frames). The start search runs only where the chain overrides the detector.
+    # left and right of a part that the frame's own start search keeps as detected,
+    # keeping the fit nearer the keypoints (pipeline._checked_labels): a neighbour fitted
+    # with its legs crossed (a swap the detector made and its fit missed) otherwise
+    # passes them on (seed 3's leg-up sitter, five frames 240 mm worse than single
+    # frames). The start search runs only where the chain overrides the detector.
     sequence_label_check: bool = True
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
