@@ -1161,9 +1161,8 @@ def test_sequence_mode_refits_a_frame_whose_chain_overrides_its_own_start_search
     labelled to match, its legs taken as swapped. Its own start search keeps them as
     detected, so it is fitted again from scratch, and that fit, nearer its keypoints, is
     kept; the ablation (`prox-no-label-check`) keeps the crossed legs, 15-20 cm a joint
-    off. Where the
-    detector did exchange them, the start search agrees with the chain and the warm fit
-    stands, the search charged to it."""
+    off. Where the detector did exchange them, the start search agrees with the chain
+    and the warm fit stands, the search charged to it."""
     from dataclasses import replace
 
     from prox_engine.keypoints import side_swap
