@@ -225,7 +225,8 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     results = fitter.fit([frame], warm_start=previous.params,
                          previous_keypoints=previous.keypoints[None])
     errors = _errors(fitter, results[0], frame)
-    why = refit_reason(fitter.config, float(errors.nanmean()), anchor_px,
+    error_px = float(errors.nanmean())
+    why = refit_reason(fitter.config, error_px, anchor_px,
                        previous.swapped, results[0].swapped, metrics.limb_errors(errors))
     if why:
         fresh = fitter.fit([frame])
@@ -233,7 +234,7 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
         _discard(fresh[0], results[0])
         return fresh
     if fitter.config.sequence_refit and fitter.config.sequence_label_check:
-        checked = _checked_labels(fitter, frame, results[0])
+        checked = _checked_labels(fitter, frame, results[0], error_px)
         if checked is not results[0]:
             return [checked]
     if fitter.config.sequence_refit and fitter.config.sequence_floating_refit:
@@ -241,17 +242,18 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     return results
 
 
-def _checked_labels(fitter: Fitter, frame: Frame, warm: FitResult) -> FitResult:
-    """The warm fit, unless its labelling, taken from its neighbour's fit, overrides the
-    detector's left and right of a part that the frame's own start search
-    (``Fitter.start_labelling``, charged to ``warm``; a fit from scratch reuses it) keeps
-    as detected: then the frame is fitted again from scratch, and the fit nearer its
-    keypoints (each as it labelled them) is returned. A neighbour whose fit missed a
-    detector's swap has its legs crossed, and the frames after it, labelled to match,
-    keep them crossed, further from their keypoints than a fit from scratch (seed 3's
-    leg-up sitter: 10-13 px and five frames 240 mm worse than single frames, fitted from
-    scratch 4-8 px); where the detector did swap a part and the start search missed it,
-    the fit from scratch is the one further off (seed 57's wall: 15.3 px against 5.3)."""
+def _checked_labels(fitter: Fitter, frame: Frame, warm: FitResult, warm_px: float
+                    ) -> FitResult:
+    """The warm fit (``warm_px`` from its keypoints), unless its labelling, taken from its
+    neighbour's fit, overrides the detector's left and right of a part that the frame's own
+    start search (``Fitter.start_labelling``, charged to ``warm``; a fit from scratch reuses
+    it) keeps as detected: then the frame is fitted again from scratch, and the fit nearer
+    its keypoints (each as it labelled them) is returned. A neighbour whose fit missed a
+    detector's swap has its legs crossed, and the frames after it, labelled to match, keep
+    them crossed, further from their keypoints than a fit from scratch (seed 3's leg-up
+    sitter: 10-13 px and five frames 240 mm worse than single frames, fitted from scratch
+    4-8 px); where the detector did swap a part and the start search missed it, the fit from
+    scratch is the one further off (seed 57's wall: 15.3 px against 5.3)."""
     if not warm.swapped:
         return warm
     t0 = time.perf_counter()
@@ -261,7 +263,7 @@ def _checked_labels(fitter: Fitter, frame: Frame, warm: FitResult) -> FitResult:
     if not disputed:
         return warm
     fresh = fitter.fit([frame])[0]
-    warm_px, fresh_px = _error_px(fitter, warm, frame), _error_px(fitter, fresh, frame)
+    fresh_px = _error_px(fitter, fresh, frame)
     kept, dropped = (fresh, warm) if fresh_px < warm_px else (warm, fresh)
     kept.events.append(
         f"sequence: its neighbour's fit overrode the detector's left and right of the "
