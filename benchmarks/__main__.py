@@ -41,7 +41,8 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-no-refit" + SEQUENCE, "prox-no-limb-refit" + SEQUENCE,
            "prox-side-refit" + SEQUENCE,
            "prox-no-floating-refit" + SEQUENCE,
-           "prox-anchor-scale" + SEQUENCE, "smplifyd", "proxd")
+           "prox-anchor-scale" + SEQUENCE, "prox-absolute-temporal" + SEQUENCE,
+           "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}
 COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f"),
            ("p_v2v", "p.V2V", ".1f"), ("penetrating_share", "pen. %", "pct"),

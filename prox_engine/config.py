@@ -62,6 +62,11 @@ class FitConfig:
     # scale is searched against the scene too, before its contact stage, which rescales
     # the body: the size then changes from frame to frame, as single frames' do.
     sequence_scale_search: bool = False
+    # Sequence mode's temporal term counts the keypoints' motion about the mid-hip (the
+    # posture's change) rather than their motion (losses.temporal): the contact stage holds
+    # the root, so a body that walked 20 cm could only meet its neighbour's keypoints by
+    # leaning and bending toward where it was.
+    temporal_about_root: bool = False
     # Sequence mode fits one anchor frame from scratch and the others from their
     # neighbours, so all start from its posture, shape and depth: the first frame whose
     # body keypoints' summed confidence is this share of the best frame's (noise moves the

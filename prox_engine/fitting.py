@@ -688,7 +688,8 @@ class Fitter:
                 values["depth"] = w["depth"] * losses.depth_data(out, body, depth,
                                                                  cfg.depth_rho)
             if w.get("temporal", 0) > 0 and previous is not None:
-                values["temporal"] = w["temporal"] * losses.temporal(out, previous)
+                values["temporal"] = w["temporal"] * losses.temporal(
+                    out, previous, cfg.temporal_about_root)
             return values
         return terms
 

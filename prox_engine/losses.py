@@ -7,7 +7,7 @@ import torch
 
 from .body.base import BodyModel, BodyOutput
 from .geometry import VertexNormals, grid_subsample, picked, vertex_normals
-from .keypoints import BODY
+from .keypoints import BODY, MID_HIP
 from .scene import Scene
 from .with_gradient import with_gradient
 
@@ -164,8 +164,14 @@ def depth_data(out: BodyOutput, body: BodyModel, points: list[torch.Tensor | Non
     return torch.stack(terms)
 
 
-def temporal(out: BodyOutput, previous: torch.Tensor | None) -> torch.Tensor:
-    """Squared 3D keypoint motion (m^2) to the previous frame's fit (sequence mode)."""
+def temporal(out: BodyOutput, previous: torch.Tensor | None,
+             about_root: bool = False) -> torch.Tensor:
+    """Squared 3D keypoint motion (m^2) to the previous frame's fit (sequence mode); with
+    ``about_root``, of the keypoints about the mid-hip: the posture's change, not the
+    body's travel."""
     if previous is None:
         return out.keypoints.new_zeros(out.keypoints.shape[0])
-    return ((out.keypoints[:, BODY] - previous[:, BODY]) ** 2).sum((1, 2))
+    motion = out.keypoints[:, BODY] - previous[:, BODY]
+    if about_root:
+        motion = motion - motion[:, MID_HIP:MID_HIP + 1]
+    return (motion ** 2).sum((1, 2))

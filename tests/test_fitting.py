@@ -1118,6 +1118,34 @@ def test_sequence_mode_can_search_each_frames_scale(body):
     assert searched < 0.08 and carried > 0.2, (searched, carried)
 
 
+def test_sequence_mode_temporal_term_about_the_root_lets_a_walking_body_stand(body):
+    """A body standing on the floor under a tilted camera, warm-started exactly, whose
+    previous frame's fit stood 25 cm farther along the camera's axis (it walked toward
+    the camera): counted about the mid-hip (`prox`), the temporal term sees no motion and
+    the frame stays on its keypoints; counted as it is (`prox-absolute-temporal`), the
+    contact stage, which holds the root, bends the body back toward where it was."""
+    from prox_engine.losses import temporal
+
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    params = _posed_params(body, cam2world)
+    with torch.no_grad():
+        out = body(params)
+    truth = out.keypoints[0, :25]
+    previous = out.keypoints + torch.tensor([0.0, 0.0, 0.25])
+    assert float(temporal(out, previous, about_root=True)) < 1e-8
+    assert float(temporal(out, previous)) > 25 * 0.06
+
+    def error(name: str) -> float:
+        config = load_config(name)
+        result = Fitter(body, CAMERA, config, scene).fit(
+            [frame_of(truth)], warm_start=params, previous_keypoints=previous)[0]
+        return float((result.keypoints[:25] - truth).norm(dim=1).mean())
+
+    about_root, absolute = error("prox"), error("prox-absolute-temporal")
+    assert about_root < 0.015 and absolute > 0.03, (about_root, absolute)
+
+
 def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor(body):
     """Sequence mode, warm-started from a previous fit 15 % too small and too near (the
     same pixels, its soles 24 cm over the floor), which the frame's own stages keep (its
