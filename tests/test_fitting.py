@@ -1093,16 +1093,21 @@ def test_rescale_scales_the_body_about_the_camera(body):
         assert float(pixels.mean()) < 3.0
 
 
+def _standing_on_floor(body) -> tuple[Scene, dict[str, torch.Tensor], BodyOutput]:
+    """A floor under a tilted camera, and a mean standing body on it: its parameters and
+    its posed output."""
+    cam2world = tilted_camera()
+    params = _posed_params(body, cam2world)
+    with torch.no_grad():
+        return floor_scene(cam2world), params, body(params)
+
+
 def test_sequence_mode_can_search_each_frames_scale(body):
     """Sequence mode, warm-started from a previous fit 15 % too big and too far (the same
     pixels, its soles through the floor): with ``sequence_scale_search`` each frame's scale
     search brings the body back onto the floor (`prox`); without it, with the shape kept,
     the depth carried over from the previous frame stays (`prox-anchor-scale`)."""
-    cam2world = tilted_camera()
-    scene = floor_scene(cam2world)
-    params = _posed_params(body, cam2world)
-    with torch.no_grad():
-        out = body(params)
+    scene, params, out = _standing_on_floor(body)
     truth = out.keypoints[0, :25]
     config = load_config("prox")
     too_far = {k: v.clone() for k, v in params.items()}
@@ -1126,11 +1131,7 @@ def test_sequence_mode_temporal_term_about_the_root_lets_a_walking_body_stand(bo
     contact stage, which holds the root, bends the body back toward where it was."""
     from prox_engine.losses import temporal
 
-    cam2world = tilted_camera()
-    scene = floor_scene(cam2world)
-    params = _posed_params(body, cam2world)
-    with torch.no_grad():
-        out = body(params)
+    scene, params, out = _standing_on_floor(body)
     truth = out.keypoints[0, :25]
     previous = out.keypoints + torch.tensor([0.0, 0.0, 0.25])
     assert float(temporal(out, previous, about_root=True)) < 1e-8
