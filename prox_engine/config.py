@@ -203,6 +203,13 @@ class FitConfig:
     # deep in the scan; the feet and hands stay on it. 0: on the surface, as the paper's
     # terms.
     soft_sink: float = 0.0
+    # Depth (m) the feet may enter the scan before the penetration term counts them (added
+    # to penetration_tolerance; the contact term still has them on the surface): a scan
+    # registered a centimetre or two off the camera puts correctly placed soles that deep
+    # in its floor, and the scene stages, which hold the root, could only bend the legs out
+    # (seed 81's leg-up sitter: a shin turned 40 degrees, 60 -> 95 mm). The scale search
+    # does not count penetration that shallow either (scale_search.PENETRATION_MARGIN).
+    foot_tolerance: float = 0.0
     # The penetration term reads one body vertex per cell of a grid this size (m) over the
     # standing body, counted for the cell's vertices (losses.penetration_vertices): anny's
     # 13348 scene vertices become 6424, the face, hands and feet thinned, the trunk and

@@ -62,6 +62,8 @@ GRAPH_TERMS = (*MESH_TERMS, "self_penetration", "temporal")
 # Priors that measure how far a posture is from the model's rest pose, which the start
 # choice may leave out (FitConfig.start_choice_priors).
 POSTURE_PRIORS = ("pose_prior", "bending")
+# The parts FitConfig.foot_tolerance lets into the scan (vertex parts, whole feet).
+FEET_PARTS = ("left_foot", "right_foot")
 # Terms that shape a fit but never rank candidates (FitConfig.level_weight).
 UNRANKED = ("level",)
 # A rescale by at most this fraction refits the shape under its first-order expansion
@@ -204,6 +206,10 @@ class Fitter:
                         self.scene_subset.ids[self.penetration_vertices[0]]]
                 if self.contact_normals is not None:
                     self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
+        if config.foot_tolerance > 0 and self.penetration_vertices is not None:
+            feet = torch.tensor([p in FEET_PARTS for p in body.vertex_parts])
+            self.penetration_tolerance = self.penetration_tolerance + config.foot_tolerance * (
+                feet[self.scene_subset.ids[self.penetration_vertices[0]]].float())
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         # The frames last initialised: their keypoints, starts, labellings and events.
         self._started: tuple[list[np.ndarray], Params, list[tuple[str, ...]], list[str]] = (
