@@ -35,7 +35,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-no-facing", "prox-no-upright", "prox-free-cut-shins", "prox-faint-legs-in-view",
            "prox-scene-translates", "prox-no-scene-guard",
            "prox-no-floating-restart", "prox-unchecked-swaps", "prox-no-give",
-           "prox-no-foot-tolerance", "prox-unlevelled",
+           "prox-feet-tolerant", "prox-unlevelled",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",
            "prox", "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,
@@ -43,7 +43,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-side-refit" + SEQUENCE,
            "prox-no-floating-refit" + SEQUENCE,
            "prox-anchor-scale" + SEQUENCE, "prox-absolute-temporal" + SEQUENCE,
-           "prox-no-foot-tolerance" + SEQUENCE,
+           "prox-feet-tolerant" + SEQUENCE,
            "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}
 COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f"),
