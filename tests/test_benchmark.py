@@ -140,6 +140,41 @@ def test_small_benchmark_prox_beats_rgb(tmp_path):
                for name, n in counts.items())
 
 
+def test_compare_counts_the_frames_a_change_moved_in_millimetres(tmp_path):
+    """Two configurations of the same four frames: the second fits one frame 40 mm better
+    and one 20 mm worse, and two by under a millimetre; the means move by 5 mm, and only
+    the two frames that moved by more than 15 mm are counted, each on its side."""
+    from benchmarks.compare import paired
+
+    def row(kind: str, frame: str, pje: float) -> dict:
+        return {"kind": kind, "frame": frame, "pje": pje, "v2v": pje + 1.0,
+                "p_pje": pje / 2, "penetrating_share": 0.001}
+
+    first = [row("sit", "a", 100.0), row("sit", "b", 60.0), row("walk", "a", 80.0),
+             row("walk", "b", 70.0)]
+    second = [row("sit", "a", 60.0), row("sit", "b", 60.5), row("walk", "a", 100.0),
+              row("walk", "b", 69.6)]
+    result = paired(first, second)
+    overall = result["table"]["all"]
+    assert (overall["better"], overall["worse"]) == (1, 1)
+    assert overall["first"]["pje"] - overall["second"]["pje"] == pytest.approx(4.975)
+    assert (result["table"]["sit"]["better"], result["table"]["sit"]["worse"]) == (1, 0)
+    assert result["moved"][0] == (-40.0, "sit", "a")
+    with pytest.raises(ValueError, match="same frames"):
+        paired(first, second[:3])
+
+    results = tmp_path / "results.json"
+    results.write_text(json.dumps({"frames": {"prox": first, "prox-soft": second}}))
+    shown = subprocess.run([sys.executable, "-m", "benchmarks.compare",
+                            f"{results}:prox", f"{results}:prox-soft"],
+                           capture_output=True, text=True, check=True).stdout
+    assert "| all | 77.5 / 78.5 / 38.8 | 72.5 / 73.5 / 36.3 | 0.10 -> 0.10 | 1 / 1 |" in shown
+    missing = subprocess.run([sys.executable, "-m", "benchmarks.compare",
+                              f"{results}:prox", f"{results}:proxd"],
+                             capture_output=True, text=True)
+    assert missing.returncode != 0 and "no configuration 'proxd'" in missing.stderr
+
+
 def test_frames_are_told_apart_by_what_the_detector_did():
     """The worst thing the detector did names a frame's condition: cut off below the knees
     before blurred, blurred before swapped sides; nothing is clean."""
