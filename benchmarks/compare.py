@@ -22,7 +22,10 @@ MEANS = (("pje", "PJE"), ("v2v", "V2V"), ("p_pje", "p.PJE"))
 def load_rows(spec: str) -> list[dict]:
     """The frame rows of ``RESULTS.json:CONFIG`` (a ``python -m benchmarks`` output)."""
     path, _, config = spec.rpartition(":")
-    frames = json.loads(Path(path).read_text())["frames"]
+    try:
+        frames = json.loads(Path(path).read_text())["frames"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: not a `python -m benchmarks` results file ({exc!r})")
     if config not in frames:
         raise SystemExit(f"{path}: no configuration '{config}' (it has {', '.join(frames)})")
     return frames[config]
@@ -87,7 +90,11 @@ def main(argv: list[str] | None = None) -> None:
         first += [{**r, "frame": f"{pair}:{r['frame']}"} for r in load_rows(a)]
         second += [{**r, "frame": f"{pair}:{r['frame']}"} for r in load_rows(b)]
     names = (args.sides[0].rpartition(":")[2], args.sides[1].rpartition(":")[2])
-    print(render(paired(first, second, args.threshold), names, args.threshold))
+    try:
+        result = paired(first, second, args.threshold)
+    except ValueError as exc:
+        parser.error(str(exc))
+    print(render(result, names, args.threshold))
 
 
 if __name__ == "__main__":

@@ -173,6 +173,11 @@ def test_compare_counts_the_frames_a_change_moved_in_millimetres(tmp_path):
                               f"{results}:prox", f"{results}:proxd"],
                              capture_output=True, text=True)
     assert missing.returncode != 0 and "no configuration 'proxd'" in missing.stderr
+    absent = subprocess.run([sys.executable, "-m", "benchmarks.compare",
+                             f"{tmp_path / 'none.json'}:prox", f"{results}:prox"],
+                            capture_output=True, text=True)
+    assert absent.returncode != 0 and "none.json: not a" in absent.stderr
+    assert "Traceback" not in missing.stderr + absent.stderr
 
 
 def test_frames_are_told_apart_by_what_the_detector_did():
