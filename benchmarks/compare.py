@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .evaluate import aggregate
+
 MEANS = (("pje", "PJE"), ("v2v", "V2V"), ("p_pje", "p.PJE"))
 
 
@@ -32,7 +34,7 @@ def load_rows(spec: str) -> list[dict]:
 
 
 def paired(first: list[dict], second: list[dict], threshold_mm: float = 15.0) -> dict:
-    """Per kind and "all": both sides' means and penetration, and the frames the second fits
+    """Per kind and "all": both sides' :func:`evaluate.aggregate`, and the frames the second fits
     better / worse than the first by more than ``threshold_mm`` PJE; "moved": every
     frame's (PJE change mm, kind, frame), largest gain first. Frames are matched by kind
     and name (one recording per kind and seed)."""
@@ -47,9 +49,7 @@ def paired(first: list[dict], second: list[dict], threshold_mm: float = 15.0) ->
         chosen = [(a, b) for a, b in pairs if kind in ("all", a["kind"])]
         change = np.array([b["pje"] - a["pje"] for a, b in chosen])
         table[kind] = {
-            "frames": len(chosen),
-            **{side: {key: float(np.mean([p[i][key] for p in chosen]))
-                      for key in (*(k for k, _ in MEANS), "penetrating_share")}
+            **{side: aggregate([p[i] for p in chosen])
                for i, side in enumerate(("first", "second"))},
             "better": int((change < -threshold_mm).sum()),
             "worse": int((change > threshold_mm).sum()),

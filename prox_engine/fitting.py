@@ -62,8 +62,6 @@ GRAPH_TERMS = (*MESH_TERMS, "self_penetration", "temporal")
 # Priors that measure how far a posture is from the model's rest pose, which the start
 # choice may leave out (FitConfig.start_choice_priors).
 POSTURE_PRIORS = ("pose_prior", "bending")
-# The parts FitConfig.foot_tolerance lets into the scan (vertex parts, whole feet).
-FEET_PARTS = ("left_foot", "right_foot")
 # Terms that shape a fit but never rank candidates (FitConfig.level_weight).
 UNRANKED = ("level",)
 # A rescale by at most this fraction refits the shape under its first-order expansion
@@ -198,18 +196,17 @@ class Fitter:
                                          rest.keypoints[0, ANKLES])
             self.scene_subset, self.penetration_vertices, self.contact_normals = (
                 self._scene_vertices(rest.vertices[0]))
-            if config.soft_sink > 0:
-                sink = config.soft_sink * losses.part_vertices(
-                    body.contact_parts, losses.SOFT_PARTS, body.num_vertices)
-                if self.penetration_vertices is not None:
-                    self.penetration_tolerance = config.penetration_tolerance + sink[
-                        self.scene_subset.ids[self.penetration_vertices[0]]]
-                if self.contact_normals is not None:
-                    self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
-        if config.foot_tolerance > 0 and self.penetration_vertices is not None:
-            feet = torch.tensor([p in FEET_PARTS for p in body.vertex_parts])
-            self.penetration_tolerance = self.penetration_tolerance + config.foot_tolerance * (
-                feet[self.scene_subset.ids[self.penetration_vertices[0]]].float())
+            # How deep each vertex may enter the scan beyond penetration_tolerance: the
+            # resting flesh's sink, the feet's tolerance (disjoint parts)
+            sink = config.soft_sink * losses.part_vertices(
+                body.contact_parts, losses.SOFT_PARTS, body.num_vertices)
+            give = sink if config.foot_tolerance <= 0 else sink + config.foot_tolerance * (
+                torch.tensor([p in losses.FEET_PARTS for p in body.vertex_parts]))
+            if self.penetration_vertices is not None and bool(give.any()):
+                self.penetration_tolerance = config.penetration_tolerance + give[
+                    self.scene_subset.ids[self.penetration_vertices[0]]]
+            if config.soft_sink > 0 and self.contact_normals is not None:
+                self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         # The frames last initialised: their keypoints, starts, labellings and events.
         self._started: tuple[list[np.ndarray], Params, list[tuple[str, ...]], list[str]] = (

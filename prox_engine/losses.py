@@ -64,6 +64,8 @@ def penetration_energy(points: torch.Tensor, scene: Scene,
 # one's back): they and the cushions under them give, so that a body resting on them lies a
 # little inside the scanned surface there (FitConfig.soft_sink), its feet and hands on it.
 SOFT_PARTS = ("back", "gluteus", "thighs")
+# The vertex parts a misregistered floor may hold inside it (FitConfig.foot_tolerance).
+FEET_PARTS = ("left_foot", "right_foot")
 
 
 def part_vertices(contact_parts: dict[str, torch.Tensor], parts: tuple[str, ...],

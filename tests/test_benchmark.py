@@ -148,7 +148,10 @@ def test_compare_counts_the_frames_a_change_moved_in_millimetres(tmp_path):
 
     def row(kind: str, frame: str, pje: float) -> dict:
         return {"kind": kind, "frame": frame, "pje": pje, "v2v": pje + 1.0,
-                "p_pje": pje / 2, "penetrating_share": 0.001}
+                "p_pje": pje / 2, "p_v2v": pje / 2, "penetrating_share": 0.001,
+                "penetration_mean_depth_m": 0.01, "penetrating_share_as_given": 0.001,
+                "seconds": 1.0, "gt_contacts": 2, "contacts_recovered": 1,
+                "sides_right": True}
 
     first = [row("sit", "a", 100.0), row("sit", "b", 60.0), row("walk", "a", 80.0),
              row("walk", "b", 70.0)]
