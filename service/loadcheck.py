@@ -157,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         runs = [store.get(i)["runs"] for i in ids]
         frames = [_check_results(client, i) for i in ids if jobs[i]["status"] == "finished"]
         listed = client.http.get("/v1/jobs", params={"limit": 100}).json()["total"]
+        timed = [j["timings"] for j in jobs.values() if j["timings"]["run_seconds"]]
         report["load"] = {
             "distinct_ids": len(set(ids)), "listed": listed,
             "finished": sum(j["status"] == "finished" for j in jobs.values()),
@@ -167,9 +168,12 @@ def main(argv: list[str] | None = None) -> int:
             "submit_seconds_max": round(latencies[-1], 3),
             "wall_seconds": round(wall, 1),
             "jobs_per_minute": round(args.jobs / wall * 60, 1),
-            "run_seconds_mean": round(statistics.mean(
-                j["timings"]["run_seconds"] for j in jobs.values()
-                if j["timings"]["run_seconds"]), 2),
+            "run_seconds_mean": round(statistics.mean(t["run_seconds"] for t in timed), 2),
+            # a job's overhead: its run less the seconds its frame took to fit
+            "besides_fitting_seconds_mean": round(statistics.mean(
+                t["run_seconds"] - t["seconds_per_frame"] for t in timed), 2),
+            "steps_seconds_mean": {step: round(statistics.mean(
+                t["steps"][step] for t in timed), 3) for step in timed[0]["steps"]},
             "queued_seconds_max": round(max(j["timings"]["queued_seconds"] or 0
                                             for j in jobs.values()), 1),
         }

@@ -22,6 +22,9 @@ class Timings(BaseModel):
     queued_seconds: float | None
     run_seconds: float | None
     seconds_per_frame: float | None
+    # seconds each step of the run took, in order: preparing (the upload unpacked),
+    # fitting (scenes and frames, the baseline's too), report, publishing
+    steps: dict[str, float]
 
 
 class JobView(BaseModel):
@@ -95,7 +98,8 @@ def job_view(record: dict, base: str, report_key: str | None = None) -> JobView:
                         queued_seconds=round(started - record["created_at"], 3)
                         if started else None,
                         run_seconds=record["timings"].get("run_seconds"),
-                        seconds_per_frame=record["timings"].get("seconds_per_frame")),
+                        seconds_per_frame=record["timings"].get("seconds_per_frame"),
+                        steps=record["timings"].get("steps", {})),
         attempt=record["attempt"], worker=record["worker"], error=record["error"],
         errors=record["errors"],
         links=links)

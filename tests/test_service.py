@@ -157,6 +157,9 @@ def test_full_job_upload_to_download(stack, dataset_zip, body, tmp_path):
     timings = job["timings"]
     assert timings["queued_seconds"] >= 0 and timings["run_seconds"] > 0
     assert 0 < timings["seconds_per_frame"] < timings["run_seconds"]
+    assert list(timings["steps"]) == ["preparing", "fitting", "report", "publishing"]
+    assert timings["seconds_per_frame"] < timings["steps"]["fitting"]
+    assert 0.9 * timings["run_seconds"] < sum(timings["steps"].values()) <= timings["run_seconds"]
 
     results = http.get(job["links"]["results"])
     assert results.status_code == 200

@@ -176,6 +176,13 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
         if not heartbeat.current or not store.progress(job_id, attempt, **fields):
             raise JobAborted
 
+    steps: dict[str, float] = {}  # seconds a step of the job took, in order
+
+    def step_ended(name: str, since: float) -> float:
+        now = time.perf_counter()
+        steps[name] = round(now - since, 3)
+        return now
+
     update(stage="preparing")
     upload = scratch / "upload.zip"
     storage.get_file(f"jobs/{job_id}/upload.zip", upload)
@@ -187,6 +194,7 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
     baseline = (options.fit_config(settings.model_dir, options.baseline)
                 if options.baseline else None)
     out = scratch / "results"
+    mark = step_ended("preparing", started)
     done = failed = 0
     errors: list[dict] = []
     seconds: list[float] = []
@@ -235,17 +243,21 @@ def _run(store: JobStore, storage: Storage, settings: Settings, job_id: str, att
         store.fail(job_id, attempt, f"no frame could be fitted: {shown}{more}",
                    frames_done=done, frames_failed=failed, errors=errors)
         return "failed"
+    mark = step_ended("fitting", mark)
     if options.report:
         errors += _reports(out, data / base, list(record["recordings"]), options, job_id,
                            update)
+        mark = step_ended("report", mark)
 
     update(stage="publishing", frames_done=done, frames_failed=failed)
     archive = scratch / "results.zip"
     zip_tree(out, archive)
     storage.put_tree(f"jobs/{job_id}/results", out)
     storage.put_file(f"jobs/{job_id}/results.zip", archive)
+    step_ended("publishing", mark)
     timings = {"run_seconds": round(time.perf_counter() - started, 3),
-               "seconds_per_frame": round(sum(seconds) / len(seconds), 3) if seconds else None}
+               "seconds_per_frame": round(sum(seconds) / len(seconds), 3) if seconds else None,
+               "steps": steps}
     if not store.finish(job_id, attempt, frames_done=done, frames_failed=failed,
                         errors=errors, timings=timings):
         if store.get(job_id) is None:  # deleted while publishing: leave nothing behind
