@@ -159,7 +159,8 @@ def test_full_job_upload_to_download(stack, dataset_zip, body, tmp_path):
     assert 0 < timings["seconds_per_frame"] < timings["run_seconds"]
     assert list(timings["steps"]) == ["preparing", "fitting", "report", "publishing"]
     assert timings["seconds_per_frame"] < timings["steps"]["fitting"]
-    assert 0.9 * timings["run_seconds"] < sum(timings["steps"].values()) <= timings["run_seconds"]
+    steps = sum(timings["steps"].values())  # end to end, each rounded to 1 ms
+    assert 0.9 * timings["run_seconds"] < steps <= timings["run_seconds"] + 0.004
 
     results = http.get(job["links"]["results"])
     assert results.status_code == 200
