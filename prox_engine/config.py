@@ -243,6 +243,10 @@ class FitConfig:
     # (keypoint_terms.plumb_shins). Nothing else places that shin, and the scale search stands
     # the body on the guess.
     plumb_shin_weight: float = 0.0
+    # ... only in frames where the detector reports no point below either knee (cut off
+    # under the knees; keypoints.nothing_below_knees). Where the other leg's foot is
+    # reported, a leg missing below the knee is hidden, not cut off, and may be kneeling.
+    plumb_cut_frames_only: bool = False
     contact_rho: float = 0.05
     contact_max_angle: float = 45.0
     contact_max_distance: float = 0.15  # vertices farther than this are not attracted

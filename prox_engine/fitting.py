@@ -19,7 +19,7 @@ from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
 from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LABELLINGS,
                         LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, cut_legs,
-                        side_swap, thighs_hidden)
+                        nothing_below_knees, side_swap, thighs_hidden)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, kneelers_toes,
@@ -637,6 +637,8 @@ class Fitter:
         """What stays put while a stage runs (:class:`_Held`)."""
         w, cfg, body = stage.weights, self.config, self.body
         legs = cut_legs(conf)
+        if cfg.plumb_cut_frames_only:
+            legs = legs & nothing_below_knees(conf)[..., None]
         priors = {"pose_prior": (body.pose_prior, body.pose_group()),
                   "shape": (body.shape_prior, body.shape_group()),
                   "bending": (body.bending_prior, body.pose_group()),

@@ -184,6 +184,14 @@ def cut_legs(conf: torch.Tensor) -> torch.Tensor:
     return (conf[..., KNEES] > 0) & (below == 0).all(-1)
 
 
+def nothing_below_knees(conf: torch.Tensor) -> torch.Tensor:
+    """(...,) whether the detector reports no point below either knee (ankles, toes,
+    heels), from confidences (..., K): a frame cut off under the knees, as opposed to one
+    leg's lower part hidden while the other's is reported."""
+    below = conf[..., [foot for _, foot in SHINS]]  # (..., 2, 4)
+    return (below == 0).all(-1).all(-1)
+
+
 def thighs_hidden(conf: torch.Tensor) -> torch.Tensor:
     """(...,) whether the detector reports neither hip nor knee above HIDDEN, from
     confidences (..., K): the thighs are behind something (a seated person's, behind a

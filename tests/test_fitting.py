@@ -228,7 +228,7 @@ def test_cut_off_shins_are_drawn_plumb(body):
     uprightness squared (worked out here in the world frame); a leg with its ankle or
     without its knee reported costs nothing, nor does a lying body."""
     from prox_engine.keypoint_terms import plumb_shins
-    from prox_engine.keypoints import cut_legs
+    from prox_engine.keypoints import cut_legs, nothing_below_knees
 
     cam2world = tilted_camera()
     up = floor_scene(cam2world).up_in_camera()
@@ -239,6 +239,7 @@ def test_cut_off_shins_are_drawn_plumb(body):
     conf[3, [14, 19, 20, 21]] = 0.0  # nor below the left knee
     assert cut_legs(conf).tolist() == [[True, False], [False, False], [False, False],
                                        [True, True]]
+    assert nothing_below_knees(conf).tolist() == [False, False, False, True]
 
     def cost(tip: float, bend: float, cut: list[bool]) -> tuple[float, float]:
         world, camera = _tipped(body, cam2world, tip, bend)
@@ -261,28 +262,40 @@ def test_cut_off_shins_are_drawn_plumb(body):
     assert lying[0] == pytest.approx(lying[1], rel=1e-4, abs=1e-5) and lying[0] < 0.01
 
 
-def test_plumb_shins_act_only_on_cut_legs(body):
+@pytest.mark.parametrize("name", ["prox", "prox-plumb-hidden-shins"])
+def test_plumb_shins_act_only_on_cut_legs(body, name):
     """In the fitter's terms the plumb-shin term is the configured weight times
-    keypoint_terms.plumb_shins on the frames with a leg cut off below the knee, and exactly
-    0 on the others (whose objective is then the one without the term)."""
+    keypoint_terms.plumb_shins on the frames cut off below the knees (nothing below either
+    knee reported), and exactly 0 on the others (whose objective is then the one without
+    the term). A leg missing below the knee while the other's foot is reported is hidden,
+    not cut off: `prox` leaves its shin free, its ablation draws it plumb too."""
     from prox_engine.keypoint_terms import plumb_shins
 
     cam2world = tilted_camera()
-    config = load_config("prox")
+    config = load_config(name)
     assert config.plumb_shin_weight > 0
+    assert config.plumb_cut_frames_only == (name == "prox")
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
     _, camera = _tipped(body, cam2world, 0.0, 60.0)
-    out = BodyOutput(None, camera[None].expand(2, -1, -1))
-    conf = torch.full((2, N_KEYPOINTS), 0.9)
-    conf[1, [11, 22, 23, 24]] = 0.0
-    params = body.init_params(2)
+    out = BodyOutput(None, camera[None].expand(3, -1, -1))
+    conf = torch.full((3, N_KEYPOINTS), 0.9)
+    conf[1:, [11, 22, 23, 24]] = 0.0  # nothing below the right knee ...
+    conf[2, [14, 19, 20, 21]] = 0.0  # ... nor, in frame 2, below the left one
+    conf[1, 21] = 0.1  # frame 1: the left heel, faintly
+    params = body.init_params(3)
     target = CAMERA.project(out.keypoints)[..., :2]
-    terms = fitter._terms(config.stages[0], params, target, conf, [None, None], None)(out)
+    terms = fitter._terms(config.stages[0], params, target, conf, [None] * 3, None)(out)
     assert float(terms["plumb_shins"][0]) == 0.0
-    expected = config.plumb_shin_weight * plumb_shins(out.keypoints, fitter.up,
-                                                      torch.tensor([[True, False]] * 2))
-    assert float(terms["plumb_shins"][1]) == pytest.approx(float(expected[1]), rel=1e-5)
-    assert float(terms["plumb_shins"][1]) > 0.3 * config.plumb_shin_weight
+    expected = config.plumb_shin_weight * plumb_shins(
+        out.keypoints, fitter.up, torch.tensor([[True, False], [True, False], [True, True]]))
+    hidden = float(terms["plumb_shins"][1])
+    if name == "prox":
+        assert hidden == 0.0
+    else:
+        assert hidden == pytest.approx(float(expected[1]), rel=1e-5)
+        assert hidden > 0.3 * config.plumb_shin_weight
+    assert float(terms["plumb_shins"][2]) == pytest.approx(float(expected[2]), rel=1e-5)
+    assert float(terms["plumb_shins"][2]) > 0.3 * config.plumb_shin_weight
 
 
 @pytest.mark.parametrize("yaw", [0.0, 1.0])
