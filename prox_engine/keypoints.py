@@ -180,16 +180,19 @@ def cut_legs(conf: torch.Tensor) -> torch.Tensor:
     """(..., 2) per leg of SHINS, whether the detector reported its knee and nothing below
     it (ankle, toes, heel), from confidences (..., K): a leg cut off by the image's edge
     or wholly hidden below the knee, whose shin the fit has to guess."""
-    below = conf[..., [foot for _, foot in SHINS]]  # (..., 2, 4)
-    return (conf[..., KNEES] > 0) & (below == 0).all(-1)
+    return (conf[..., KNEES] > 0) & _nothing_below(conf)
 
 
 def nothing_below_knees(conf: torch.Tensor) -> torch.Tensor:
     """(...,) whether the detector reports no point below either knee (ankles, toes,
     heels), from confidences (..., K): a frame cut off under the knees, as opposed to one
     leg's lower part hidden while the other's is reported."""
-    below = conf[..., [foot for _, foot in SHINS]]  # (..., 2, 4)
-    return (below == 0).all(-1).all(-1)
+    return _nothing_below(conf).all(-1)
+
+
+def _nothing_below(conf: torch.Tensor) -> torch.Tensor:
+    """(..., 2) per leg of SHINS, whether no point below its knee is reported."""
+    return (conf[..., [foot for _, foot in SHINS]] == 0).all(-1)  # feet (..., 2, 4)
 
 
 def thighs_hidden(conf: torch.Tensor) -> torch.Tensor:
