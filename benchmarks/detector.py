@@ -6,8 +6,9 @@ ground truth so that the benchmark stops agreeing with the engine by constructio
   direction that stays the same for a person;
 - left/right swaps of the legs in about 10 % of the frames and of the arms in about 5 %;
 - motion blur in about 15 % of the frames: 10 px of noise and lower confidences;
-- truncation at the image edge in about 8 % of the frames: what lies below the knees is
-  cut off.
+- truncation at the image edge (``benchmarks.generate.cut_at_edge`` frames a tenth of the
+  recordings so that the bottom edge crosses the shins): what lies beyond it is not
+  reported.
 """
 from __future__ import annotations
 
@@ -20,7 +21,6 @@ from prox_engine.keypoints import SIDE_PAIRS, side_swap
 LEFT_RIGHT = {**SIDE_PAIRS, "head": [(16, 15), (18, 17)]}
 SWAP_RATES = {"legs": 0.10, "arms": 0.05}
 BLUR_RATE, BLUR_PX = 0.15, 10.0
-TRUNCATION_RATE = 0.08
 
 
 @dataclass
@@ -76,25 +76,20 @@ class Condition:
     truncated: bool
 
 
-def condition(rng: np.random.Generator) -> Condition:
+def condition(rng: np.random.Generator, truncated: bool) -> Condition:
+    """Swaps and blur drawn for one frame; ``truncated``: the image's edge cuts the body."""
     return Condition([part for part, rate in SWAP_RATES.items() if rng.random() < rate],
-                     bool(rng.random() < BLUR_RATE), bool(rng.random() < TRUNCATION_RATE))
+                     bool(rng.random() < BLUR_RATE), truncated)
 
 
 def apply(uv: np.ndarray, conf: np.ndarray, cond: Condition,
           rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Pixel keypoints and confidences (118 rows) as the detector reports them in a
-    frame with ``cond``: swapped sides, blur, truncation below the knees."""
+    frame with ``cond``: swapped sides, blur."""
     order = side_swap(tuple(cond.swapped))
     uv, conf = uv[order].copy(), conf[order].copy()
     if cond.blurred:
         seen = conf > 0
         uv[seen] += rng.normal(0.0, BLUR_PX, (int(seen.sum()), 2))
         conf[seen] *= rng.uniform(0.5, 0.8, int(seen.sum()))
-    if cond.truncated:
-        knees = [k for k in (10, 13) if conf[k] > 0]
-        if knees:
-            edge = uv[knees, 1].mean() + 5.0
-            cut = uv[:, 1] > edge
-            uv[cut], conf[cut] = 0.0, 0.0
     return uv, conf

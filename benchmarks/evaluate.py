@@ -65,8 +65,8 @@ def frame_metrics(fit_vertices: np.ndarray, gt_vertices: np.ndarray, body: BodyM
 
 
 # What the generator's detector did to a frame (benchmarks.detector), worst first: a frame
-# cut off below the knees counts as cut off whatever else happened to it, a blurred one
-# as blurred, and so on.
+# cut off below the knees by the image's edge (benchmarks.generate.cut_at_edge) counts as
+# cut off whatever else happened to it, a blurred one as blurred, and so on.
 CONDITIONS = ("cut off below the knees", "blurred", "sides swapped", "clean")
 
 

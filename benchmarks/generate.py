@@ -10,9 +10,10 @@ ground-truth body so that it touches it, except that seats and mattresses are so
 body sinks 2-4 cm into the scanned surface. Scans are open surfaces with about 280k faces,
 2 mm noise and a few holes away from the person, and are registered to the camera 1-3 cm
 and 0.5-1.5 degrees off. Keypoints are what a detector reports (``benchmarks.detector``):
-per-person offsets from the model's joints, left/right swaps, blur and truncation, on top
-of 2-4 px noise; occluded joints are weakened or dropped, and some frames hold a spurious
-second person. Ground truth (never read by the fitter): ``ground_truth/<rec>/<frame>.npz``
+per-person offsets from the model's joints, left/right swaps and blur, on top of 2-4 px
+noise; occluded joints are weakened or dropped, joints beyond the image's edge are not
+reported (a tenth of the recordings are framed so that its bottom edge crosses the shins),
+and some frames hold a spurious second person. Ground truth (never read by the fitter): ``ground_truth/<rec>/<frame>.npz``
 with camera-frame ``vertices`` (V, 3) and BODY_25 ``joints`` (25, 3), and ``meta.json``.
 """
 from __future__ import annotations
@@ -32,7 +33,7 @@ from trimesh.transformations import rotation_matrix
 from prox_engine import metrics
 from prox_engine.body.anny_body import AnnyBody
 from prox_engine.dataset import Recording, load_scene_mesh
-from prox_engine.keypoints import BODY, LEFT_HAND, N_BODY, RIGHT_HAND
+from prox_engine.keypoints import ANKLES, BODY, FEET, KNEES, LEFT_HAND, N_BODY, RIGHT_HAND
 from prox_engine.output import atomic_write_text
 from prox_engine.scene import Scene
 from prox_engine.scene_sdf import compute_sdf
@@ -69,6 +70,9 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
     phenotype = sample_phenotype(rng, body, height_z)
     staging = STAGES[kind](body, phenotype, frames, rng)
     cam_local, distance = place_camera(staging, body, kind, rng)
+    cut_rng = np.random.default_rng([seed, index, 2])
+    if cut_rng.random() < TRUNCATION_RATE:
+        cam_local = cut_at_edge(cam_local, staging.keypoints, cut_rng)
     to_world = rotation_matrix(rng.uniform(-np.pi, np.pi), [0.0, 0.0, 1.0])
     cam2world = to_world @ cam_local
     vertices = transform(staging.vertices, to_world)
@@ -89,7 +93,7 @@ def make_recording(out: Path, kind: str, seed: int, frames: int, body: AnnyBody,
     per_frame = {}
     for name, kp, verts in zip(names, staging.keypoints, staging.vertices):
         kp_cam, verts_cam = transform(kp, to_cam), transform(verts, to_cam)
-        cond = detector.condition(rng)
+        cond = detector.condition(rng, not _in_view(kp_cam[BODY], margin=0.0))
         for part in cond.swapped:
             errors[f"{part} swapped"] += 1
         errors["blurred"] += cond.blurred
@@ -142,6 +146,41 @@ def place_camera(staging: Staging, body: AnnyBody, kind: str,
                 and _in_view(transform(points, np.linalg.inv(cam2body)))):
             return cam2body, float(distance)
     raise RuntimeError(f"{kind}: no camera position sees the whole person")
+
+
+# A tenth of the recordings are framed as a person near a camera aimed at the upper body:
+# the image's bottom edge crosses the shins, and whatever lies beyond it in a frame is not
+# reported (truncation at the image edge, as in real recordings: where the motion takes it,
+# a frame keeps a foot, or loses a knee too).
+TRUNCATION_RATE = 0.1
+MIN_SHINS_PX = 60.0  # shins shorter in the image (a lying or kneeling body) are not cut
+
+
+def cut_at_edge(cam2body: np.ndarray, keypoints: np.ndarray, rng: np.random.Generator
+                ) -> np.ndarray:
+    """``cam2body`` pitched up until the image's bottom edge crosses the shins of the
+    middle frame (``keypoints`` (F, 118, 3), body frame): the knees 20 px to 60 % of the
+    shins' height in the image above it, the ankles beyond it. Unchanged where the shins
+    are under MIN_SHINS_PX high in the image or the upper body (all but the knees and
+    feet) would leave the image in some frame."""
+    middle = keypoints[len(keypoints) // 2]
+
+    def rows(pose: np.ndarray, joints: list[int]) -> float:
+        return float(project(transform(middle[joints], np.linalg.inv(pose)))[:, 1].mean())
+
+    shins = rows(cam2body, ANKLES) - rows(cam2body, KNEES)
+    if shins < MIN_SHINS_PX:
+        return cam2body
+    target = HEIGHT - rng.uniform(20.0, 0.6 * shins)
+    low, high = 0.0, 0.6  # radians of pitch: raising the view lowers the body in the image
+    for _ in range(30):
+        pitched = cam2body @ rotation_matrix((low + high) / 2, [1.0, 0.0, 0.0])
+        low, high = ((low + high) / 2, high) if rows(pitched, KNEES) < target else (
+            low, (low + high) / 2)
+    upper = np.setdiff1d(np.arange(N_BODY), KNEES + FEET)
+    if all(_in_view(transform(frame[upper], np.linalg.inv(pitched))) for frame in keypoints):
+        return pitched
+    return cam2body
 
 
 def _in_view(points_cam: np.ndarray, margin: float = 20.0) -> bool:

@@ -13,11 +13,13 @@ import torch
 from PIL import Image
 
 from benchmarks.evaluate import procrustes
+from benchmarks import generate
 from benchmarks.generate import ground_truth_check, make_benchmark
 from benchmarks.staging import KNEELING, kneeling, stage_legup
 from prox_engine.dataset import Recording, load_calibration, load_depth_camera
 from prox_engine.depth import load_depth_points
-from prox_engine.keypoints import load_keypoints
+from prox_engine.keypoints import FEET, KNEES, load_keypoints
+from prox_engine.synthetic import HEIGHT, INTRINSICS
 
 from .test_render import skin_at_torso
 
@@ -65,6 +67,36 @@ def test_generated_truth_touches_without_penetrating(tmp_path, body):
         truth = np.load(tmp_path / "ground_truth" / rec / f"{frame}.npz")["vertices"]
         gap = torch.cdist(points, torch.tensor(truth, dtype=torch.float32)).min(1).values
         assert len(points) == 2000 and float(gap.median()) < 0.015
+
+
+def test_recordings_cut_at_the_image_edge_lose_what_lies_beyond(tmp_path, body, monkeypatch):
+    """A recording framed so that the image's bottom edge crosses the shins: its knees are
+    reported, its ankles and feet (beyond the edge in the truth) are not, and its frames
+    are labelled truncated; one framed as usual is not. A kneeler with its palms on a low
+    table, whose hands the edge would cut too, keeps its camera."""
+    monkeypatch.setattr(generate, "TRUNCATION_RATE", 1.0)
+    cut = make_benchmark(tmp_path / "cut", seed=3, frames=2, kinds=["sit"], body=body)[0]
+    monkeypatch.setattr(generate, "TRUNCATION_RATE", 0.0)
+    whole = make_benchmark(tmp_path / "whole", seed=3, frames=2, kinds=["sit"], body=body)[0]
+    f, c = np.asarray(INTRINSICS["f"]), np.asarray(INTRINSICS["c"])
+    for root, rec, truncated in ((tmp_path / "cut", cut, True),
+                                 (tmp_path / "whole", whole, False)):
+        meta = json.loads((root / "ground_truth" / rec / "meta.json").read_text())
+        for frame in meta["frames"]:
+            assert meta["frame_errors"][frame]["truncated"] == truncated
+            joints = np.load(root / "ground_truth" / rec / f"{frame}.npz")["joints"]
+            rows = joints[:, 1] / joints[:, 2] * f[1] + c[1]
+            reported = load_keypoints(root / "keypoints" / rec / f"{frame}_keypoints.json"
+                                      ).data[:25, 2] > 0
+            assert (rows[KNEES] < HEIGHT).all() and reported[KNEES].all()
+            assert (rows[FEET] >= HEIGHT).all() == truncated
+            assert (~reported[FEET]).all() == truncated
+    rng = np.random.default_rng([3, generate.KINDS.index("kneel")])
+    staging = generate.STAGES["kneel"](body, generate.sample_phenotype(rng, body, 0.0), 2,
+                                       rng)
+    camera, _ = generate.place_camera(staging, body, "kneel", rng)
+    assert staging.furniture  # the low table
+    assert (generate.cut_at_edge(camera, staging.keypoints, rng) == camera).all()
 
 
 @pytest.mark.parametrize("variant", KNEELING)
