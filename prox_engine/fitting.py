@@ -17,9 +17,9 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
-from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, HIDDEN, HIPS, KNEES, LABELLINGS,
-                        LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen, cut_legs,
-                        nothing_below_knees, side_swap, thighs_hidden)
+from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES,
+                        LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
+                        cut_legs, nothing_below_knees, side_swap, thighs_hidden)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, kneelers_toes,
@@ -377,7 +377,7 @@ class Fitter:
             if (warm_start is None and self.config.leg_restarts and max(counts) == 1
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
-                restarts = self._leg_restarts(rows)
+                restarts = self._limb_restarts(rows)
                 if restarts:  # each frame's own: a turn another frame needed is not fitted
                     tried = torch.stack([torch.ones(len(rows.labels), dtype=torch.bool),
                                          *(t for _, t in restarts)], 1)
@@ -492,20 +492,22 @@ class Fitter:
             best.scatter_reduce_(0, frame[rows], score[rows] + weight * costs[rows], "amin")
         return costs
 
-    def _leg_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
-        """Copies of ``rows.params`` with a leg turned until its ankle lies on the other
+    def _limb_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
+        """Copies of ``rows.params`` with a limb turned until its end lies on the other
         point of its camera ray at the same distance from the pivot, the rest of the body
         held: per leg, the shin and foot about the knee (a shin seen from in front projects
         alike tucked back with the foot in the air, or down to the floor) and, with
         ``hip_restarts`` where the knee is not clearly seen, the whole leg about the hip,
         then both legs so (a seated person's thighs hidden under a table point toward the
         camera or hang down alike); with ``knee_restarts``, per leg, the leg posed onto its
-        knee's and ankle's camera rays (:meth:`_legs_onto_rays`). With each, which rows
-        are restarts worth trying ((rows,) bool): those whose ankle the detector clearly
-        saw (for the rays, whose knee the fit misses), whose first point moved moves by at
-        least MIRROR_MIN and could be posed there within MIRROR_REACH (a straight leg
-        would bend forward; KNEE_REACH on the rays); none for a turn without such a
-        row."""
+        knee's and ankle's camera rays (:meth:`_legs_onto_rays`); with
+        ``forearm_restarts``, per arm, the forearm about the elbow (it projects alike
+        pointing toward the camera or away). With each, which rows are restarts worth
+        trying ((rows,) bool): those whose ankle the detector clearly saw (for the rays,
+        whose knee the fit misses; for a forearm, whose wrist it reported at least
+        HIDDEN), whose first point moved moves by at least MIRROR_MIN and could be posed
+        there within MIRROR_REACH (a straight leg would bend forward; KNEE_REACH on the
+        rays); none for a turn without such a row."""
         body = self.body
         with torch.no_grad():
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
@@ -534,6 +536,9 @@ class Fitter:
             if self.config.knee_restarts:
                 for moved, worth in self._legs_onto_rays(kp, rows, hip, knee, foot):
                     add([knee, *foot], moved, worth, KNEE_REACH)
+        if self.config.forearm_restarts:
+            for elbow, wrist in FOREARMS:
+                add_turn(elbow, [wrist], rows.detected[:, wrist] >= HIDDEN)
         if self.config.hip_restarts:
             goals.append(both)
             useful.append(both_useful)

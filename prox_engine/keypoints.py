@@ -45,6 +45,7 @@ ANKLES = [11, 14]  # right, left: a frame cut off at the knees has neither
 # Per leg (right, left), the knee and what hangs from it: ankle, big toe, small toe, heel.
 SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
 HIPS = [9, 12]  # right, left: where each leg of SHINS hangs from
+FOREARMS = [(3, 4), (6, 7)]  # (elbow, wrist), right then left
 KNEES = [knee for knee, _ in SHINS]
 FEET = [j for _, foot in SHINS for j in foot]  # ankles, toes and heels
 TOES = [j for _, foot in SHINS for j in foot[1:3]]  # big and small toes

@@ -836,7 +836,7 @@ def test_arm_restarts_bring_an_arm_seen_end_on_forward(body):
 
 
 @pytest.mark.parametrize("through_autograd", [False, True])
-def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_depth(
+def test_limb_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_depth(
         body, monkeypatch, through_autograd):
     """A seated body under a tilted, rolled, off-centre camera: each leg's restart turns
     the shin and foot about the knee until the ankle lies on the other point of its camera
@@ -856,7 +856,7 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
     conf = torch.full((1, N_KEYPOINTS), 0.9)
     rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25] > 0.5, [None], [()])
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
-    restarts = fitter._leg_restarts(rows)
+    restarts = fitter._limb_restarts(rows)
     assert [bool(tried) for _, tried in restarts] == [True, True]
     for (knee, chain), (variant, _) in zip(SHINS, restarts):
         with torch.no_grad():
@@ -872,10 +872,56 @@ def test_leg_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dept
         others = [j for j in range(25) if j not in (*chain, knee)]
         assert float((after[others] - before[others]).norm(dim=1).max()) < 0.02
     rows.conf[:, SHINS[0][1][0]] = 0.0  # the right ankle unseen
-    assert len(fitter._leg_restarts(rows)) == 1
+    assert len(fitter._limb_restarts(rows)) == 1
 
 
-def test_leg_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
+def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_other_depth(
+        body):
+    """A body with its arms raised and bent toward a tilted, rolled, off-centre camera,
+    its legs unseen: in `prox` each forearm is also restarted turned about the elbow until
+    the wrist lies on the other point of its camera ray at the forearm's length (a forearm
+    seen from the camera projects alike pointing toward it or away, into a mattress), so
+    the wrist projects where it did but moves in depth, and the rest of the body stays
+    within 4 cm (the shoulder gives). A wrist reported under HIDDEN gets no restart;
+    without the setting (`prox-no-forearm-restarts`), no forearm does."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import FEET, FOREARMS, HIDDEN, KNEES
+
+    cam2world = tilted_camera()
+    params = _posed_params(body, cam2world)
+    for side in ("L", "R"):
+        params["body_pose"][0, BODY_BONES.index(f"upperarm01.{side}")] = torch.tensor(
+            [1.0, 0.0, 0.0])
+        params["body_pose"][0, BODY_BONES.index(f"lowerarm01.{side}")] = torch.tensor(
+            [0.8, 0.0, 0.0])
+    with torch.no_grad():
+        before = body(params, vertices=False).keypoints[0, :25]
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, KNEES + FEET] = 0.0  # no leg restart
+    rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(), [None],
+                 [()])
+    config = load_config("prox")
+    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    restarts = fitter._limb_restarts(rows)
+    assert [bool(tried) for _, tried in restarts] == [True, True]
+    for (elbow, wrist), (variant, _) in zip(FOREARMS, restarts):
+        with torch.no_grad():
+            after = body(variant, vertices=False).keypoints[0, :25]
+        moved, was = after[wrist], before[wrist]
+        assert float((CAMERA.project(moved) - CAMERA.project(was)).norm()) < 5.0
+        depth = 2 * float(was / was.norm() @ before[elbow]) - float(was.norm())
+        assert abs(depth - float(was.norm())) > 0.1  # a real move in depth
+        assert abs(float(moved.norm()) - depth) < 0.02
+        others = [j for j in range(25) if j != wrist]  # the shoulder gives up to 4 cm
+        assert float((after[others] - before[others]).norm(dim=1).max()) < 0.04
+    rows.detected[:, FOREARMS[0][1]] = HIDDEN - 0.1  # the right wrist faint
+    assert len(fitter._limb_restarts(rows)) == 1
+    config.forearm_restarts = False
+    assert fitter._limb_restarts(rows) == []
+
+
+def test_limb_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     """A seated body under a tilted, rolled, off-centre camera whose knees the detector
     did not see (under a table) but whose ankles it did: besides the shins, each leg is
     turned whole about its hip, and both legs together, until the ankle lies on the other
@@ -893,7 +939,7 @@ def test_leg_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     conf[:, [knee for knee, _ in SHINS]] = 0.0
     rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25] > 0.5, [None], [()])
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
-    restarts = fitter._leg_restarts(rows)
+    restarts = fitter._limb_restarts(rows)
     assert len(restarts) == 5  # per leg the shin and the whole leg, then both legs
 
     def after(variant: dict) -> torch.Tensor:
@@ -918,7 +964,7 @@ def test_leg_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     assert float((both[trunk] - before[trunk]).norm(dim=1).max()) < 0.02
 
     rows.conf[:, [knee for knee, _ in SHINS]] = 0.9
-    assert len(fitter._leg_restarts(rows)) == 2
+    assert len(fitter._limb_restarts(rows)) == 2
 
 
 def test_knee_restarts_pose_a_missed_leg_onto_its_knee_and_ankle_rays(body):
@@ -946,7 +992,7 @@ def test_knee_restarts_pose_a_missed_leg_onto_its_knee_and_ankle_rays(body):
     rows = _Rows(params, target[None], conf, conf[:, :25] > 0.5, [None], [()])
     config = load_config("prox")
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
-    restarts = fitter._leg_restarts(rows)
+    restarts = fitter._limb_restarts(rows)
     assert restarts
 
     def after(variant: dict) -> torch.Tensor:
@@ -960,11 +1006,11 @@ def test_knee_restarts_pose_a_missed_leg_onto_its_knee_and_ankle_rays(body):
     held = [0, 1, 2, 5, 8, 12, *SHINS[1][1], SHINS[1][0]]
     assert float((best[held] - before[held]).norm(dim=1).max()) < 0.02
     config.knee_restarts = False
-    shins_only = len(fitter._leg_restarts(rows))  # the seen shins' turns
+    shins_only = len(fitter._limb_restarts(rows))  # the seen shins' turns
     assert len(restarts) > shins_only
     config.knee_restarts = True
     rows.target[0, knee] = CAMERA.project(before[knee])
-    assert len(fitter._leg_restarts(rows)) == shins_only
+    assert len(fitter._limb_restarts(rows)) == shins_only
 
 
 def test_each_frame_chooses_among_its_own_rows(body):
