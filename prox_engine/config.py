@@ -157,9 +157,10 @@ class FitConfig:
     # ... and each leg whose knee the fit misses by more than fitting.KNEE_MISS px posed
     # onto its knee's and ankle's camera rays from the hip (Fitter._legs_onto_rays).
     knee_restarts: bool = False
-    # ... and each forearm whose wrist the detector reports (at least keypoints.HIDDEN)
-    # turned about the elbow onto the wrist's other point on its camera ray (a forearm
-    # seen from the camera projects alike pointing toward it or away, into a mattress).
+    # At the same point, with or without the leg restarts, each forearm whose wrist the
+    # detector reports (at least keypoints.HIDDEN) turned about the elbow onto the wrist's
+    # other point on its camera ray (a forearm seen from the camera projects alike
+    # pointing toward it or away, into a mattress).
     forearm_restarts: bool = False
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the

@@ -374,7 +374,8 @@ class Fitter:
                     rows = rows.widened(variants)
                     counts = [1 + len(variants)] * len(frames)
                     choice = _Choice(index + 2, by_scene=False)
-            if (warm_start is None and self.config.leg_restarts and max(counts) == 1
+            if (warm_start is None and max(counts) == 1
+                  and (self.config.leg_restarts or self.config.forearm_restarts)
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
                 restarts = self._limb_restarts(rows)
@@ -525,7 +526,7 @@ class Fitter:
             add(chain, turned_onto_ray(kp[:, pivot], kp[:, chain]), worth)
 
         both, both_useful = kp.clone(), torch.ones(len(kp), dtype=torch.bool)
-        for hip, (knee, foot) in zip(HIPS, SHINS):
+        for hip, (knee, foot) in zip(HIPS, SHINS) if self.config.leg_restarts else ():
             seen = rows.conf[:, foot[0]] > SEEN
             add_turn(knee, foot, seen)
             if self.config.hip_restarts:
@@ -539,7 +540,7 @@ class Fitter:
         if self.config.forearm_restarts:
             for elbow, wrist in FOREARMS:
                 add_turn(elbow, [wrist], rows.detected[:, wrist] >= HIDDEN)
-        if self.config.hip_restarts:
+        if self.config.leg_restarts and self.config.hip_restarts:
             goals.append(both)
             useful.append(both_useful)
             reach.append(MIRROR_REACH)

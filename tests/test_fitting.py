@@ -883,7 +883,8 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     seen from the camera projects alike pointing toward it or away, into a mattress), so
     the wrist projects where it did but moves in depth, and the rest of the body stays
     within 4 cm (the shoulder gives). A wrist reported under HIDDEN gets no restart;
-    without the setting (`prox-no-forearm-restarts`), no forearm does."""
+    without the setting (`prox-no-forearm-restarts`), no forearm does. Without the leg
+    restarts (`prox-no-leg-restarts`), a fit still restarts the forearms."""
     from prox_engine.body.anny_body import BODY_BONES
     from prox_engine.fitting import _Rows
     from prox_engine.keypoints import FEET, FOREARMS, HIDDEN, KNEES
@@ -920,6 +921,21 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     config.forearm_restarts = False
     assert fitter._limb_restarts(rows) == []
 
+    # without the leg restarts, the forearms are still restarted, in a fit too
+    config = load_config("prox-no-leg-restarts")
+    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    rows.conf[:], rows.detected[:] = 0.9, 0.9  # the ankles seen
+    assert len(fitter._limb_restarts(rows)) == 2
+    calls = []
+
+    def counted(rows: _Rows):
+        calls.append(len(rows.labels))
+        return Fitter._limb_restarts(fitter, rows)
+
+    fitter._limb_restarts = counted
+    fitter.fit([frame_of(before)])
+    assert calls
+
 
 def test_limb_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     """A seated body under a tilted, rolled, off-centre camera whose knees the detector
@@ -927,7 +943,7 @@ def test_limb_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     turned whole about its hip, and both legs together, until the ankle lies on the other
     point of its camera ray at its distance from the hip. The ankle projects where it did
     but moves in depth, the knee moves with it, and the trunk and the other leg stay put.
-    With the knees seen, no leg is turned about the hip."""
+    With the knees seen, no leg is turned about the hip; without the leg restarts, none."""
     from prox_engine.fitting import _Rows
     from prox_engine.keypoints import HIPS, SHINS
 
@@ -965,6 +981,8 @@ def test_limb_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
 
     rows.conf[:, [knee for knee, _ in SHINS]] = 0.9
     assert len(fitter._limb_restarts(rows)) == 2
+    fitter.config.leg_restarts = fitter.config.forearm_restarts = False
+    assert fitter._limb_restarts(rows) == []
 
 
 def test_knee_restarts_pose_a_missed_leg_onto_its_knee_and_ankle_rays(body):
