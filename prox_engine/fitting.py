@@ -496,14 +496,14 @@ class Fitter:
     def _limb_restarts(self, rows: _Rows) -> list[tuple[Params, torch.Tensor]]:
         """Copies of ``rows.params`` with a limb turned until its end lies on the other
         point of its camera ray at the same distance from the pivot, the rest of the body
-        held: per leg, the shin and foot about the knee (a shin seen from in front projects
-        alike tucked back with the foot in the air, or down to the floor) and, with
-        ``hip_restarts`` where the knee is not clearly seen, the whole leg about the hip,
-        then both legs so (a seated person's thighs hidden under a table point toward the
-        camera or hang down alike); with ``knee_restarts``, per leg, the leg posed onto its
-        knee's and ankle's camera rays (:meth:`_legs_onto_rays`); with
-        ``forearm_restarts``, per arm, the forearm about the elbow (it projects alike
-        pointing toward the camera or away). With each, which rows are restarts worth
+        held: with ``leg_restarts``, per leg, the shin and foot about the knee (a shin
+        seen from in front projects alike tucked back with the foot in the air, or down to
+        the floor) and, with ``hip_restarts`` where the knee is not clearly seen, the
+        whole leg about the hip, then both legs so (a seated person's thighs hidden under a
+        table point toward the camera or hang down alike); with ``knee_restarts``, per
+        leg, the leg posed onto its knee's and ankle's camera rays
+        (:meth:`_legs_onto_rays`); with ``forearm_restarts``, per arm, the forearm about
+        the elbow (it projects alike pointing toward the camera or away). With each, which rows are restarts worth
         trying ((rows,) bool): those whose ankle the detector clearly saw (for the rays,
         whose knee the fit misses; for a forearm, whose wrist it reported at least
         HIDDEN), whose first point moved moves by at least MIRROR_MIN and could be posed
@@ -526,7 +526,8 @@ class Fitter:
             add(chain, turned_onto_ray(kp[:, pivot], kp[:, chain]), worth)
 
         both, both_useful = kp.clone(), torch.ones(len(kp), dtype=torch.bool)
-        for hip, (knee, foot) in zip(HIPS, SHINS) if self.config.leg_restarts else ():
+        legs = zip(HIPS, SHINS) if self.config.leg_restarts else ()
+        for hip, (knee, foot) in legs:
             seen = rows.conf[:, foot[0]] > SEEN
             add_turn(knee, foot, seen)
             if self.config.hip_restarts:
