@@ -503,12 +503,12 @@ class Fitter:
         table point toward the camera or hang down alike); with ``knee_restarts``, per
         leg, the leg posed onto its knee's and ankle's camera rays
         (:meth:`_legs_onto_rays`); with ``forearm_restarts``, per arm, the forearm about
-        the elbow (it projects alike pointing toward the camera or away). With each, which rows are restarts worth
-        trying ((rows,) bool): those whose ankle the detector clearly saw (for the rays,
-        whose knee the fit misses; for a forearm, whose wrist it reported at least
-        HIDDEN), whose first point moved moves by at least MIRROR_MIN and could be posed
-        there within MIRROR_REACH (a straight leg would bend forward; KNEE_REACH on the
-        rays); none for a turn without such a row."""
+        the elbow (it projects alike pointing toward the camera or away). With each, which
+        rows are restarts worth trying ((rows,) bool): those whose ankle the detector
+        clearly saw (for the rays, whose knee the fit misses; for a forearm, whose wrist it
+        reported at least HIDDEN), whose first point moved moves by at least MIRROR_MIN and
+        could be posed there within MIRROR_REACH (a straight leg would bend forward;
+        KNEE_REACH on the rays); none for a turn without such a row."""
         body = self.body
         with torch.no_grad():
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
