@@ -162,6 +162,12 @@ class FitConfig:
     # other point on its camera ray (a forearm seen from the camera projects alike
     # pointing toward it or away, into a mattress).
     forearm_restarts: bool = False
+    # Where the detector reports no knee or ankle at keypoints.HIDDEN or more and the
+    # fitted knees lie in the image (legs behind furniture), the fit is also tried, just
+    # before the scale search, with the legs posed as each start posture's (standing,
+    # sitting, kneeling, crouching), and each frame keeps the one ranked best as starts
+    # are (Fitter._hidden_leg_postures).
+    hidden_leg_postures: bool = False
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the
     # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose

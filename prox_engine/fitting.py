@@ -344,6 +344,8 @@ class Fitter:
                 if cfg.point_unseen_feet:
                     rows.params.update(self._pointed_feet(rows.params,
                                                           rows.detected > SEEN))
+                if cfg.hidden_leg_postures and warm_start is None and max(counts) == 1:
+                    rows = self._hidden_leg_postures(rows, stages[index - 1])
                 scale, _ = self._scale_search(rows.params, rows.detected)
                 self._rescale(rows.params, scale, len(frames))
                 stage_seconds["scale_search"] = time.perf_counter() - t0
@@ -580,6 +582,40 @@ class Fitter:
                 restarts.append(({k: v[rows_of_turn].detach().clone()
                                   for k, v in params.items()}, tried))
         return restarts
+
+    def _hidden_leg_postures(self, rows: _Rows, stage: Stage) -> _Rows:
+        """``rows`` (one per frame), each frame whose detector reports no knee or ankle
+        at HIDDEN or more, its fitted knees in the image (legs behind furniture, not cut
+        off by the image's edge), replaced by the best of its fit and copies with the legs
+        posed as each start posture's (:meth:`BodyModel.leg_postures`), ranked as the
+        starts are: the ``stage``'s data term plus how badly each can meet the scene at
+        its best scale (with the size prior there). Hidden legs are the start's guess,
+        which the keypoint stages keep and the scale search then places the body around
+        (development seed 315's kneeler behind a low table, its knees fitted 55-61 cm off
+        the floor: 264 -> 75 mm posed kneeling). It also fires where the image's edge cut
+        the legs off and the fit puts the knees inside it."""
+        postures = self.body.leg_postures(rows.params)
+        with torch.no_grad():
+            knees = self.body(rows.params, vertices=False).keypoints[:, KNEES]
+        hidden = ((rows.detected[:, [*KNEES, *ANKLES]] < HIDDEN).all(1)
+                  & self.camera.in_image(self.camera.project(knees)).all(1))
+        if not postures or not bool(hidden.any()):
+            return rows
+        names = ["fitted", *postures]
+        tried = torch.stack([torch.ones_like(hidden), *[hidden] * len(postures)], 1)
+        wide = rows.widened(list(postures.values())).taken(
+            tried.flatten().nonzero().flatten().tolist())
+        counts = tried.sum(1).tolist()
+        with torch.no_grad():
+            data = self._data_term(stage, self.body(wide.params, vertices=False),
+                                   wide.target, wide.conf)
+        best = self._best_rows(wide.params, wide.detected, {"data": data}, counts,
+                               by_scene=True, priors=False)
+        for frame, (row, group) in enumerate(zip(best, lbfgs.sized_groups(counts))):
+            if row != group.start:
+                self.events.append(f"hidden legs posed {names[row - group.start]}"
+                                   + (f" (frame {frame} of the batch)" if frame else ""))
+        return wide.taken(best)
 
     def _legs_onto_rays(self, kp: torch.Tensor, rows: _Rows, hip: int, knee: int,
                         foot: list[int]) -> list[tuple[torch.Tensor, torch.Tensor]]:

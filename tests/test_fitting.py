@@ -937,6 +937,51 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     assert calls
 
 
+def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneeling(body):
+    """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees,
+    ankles and feet unreported (behind furniture), fitted with its legs standing (the
+    start's guess): in `prox` the fit is also tried with the legs of each start posture,
+    ranked as the starts are, and the kneeling legs win, every other joint where it was.
+    With a knee reported, or without the setting (`prox-no-hidden-legs`), the fit is
+    kept as it is."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import FEET, KNEES
+
+    cam2world = tilted_camera()
+    kneeling = _posed_params(body, cam2world, "kneeling")
+    with torch.no_grad():
+        truth = body(kneeling, vertices=False).keypoints[0]
+    standing = {k: v.clone() for k, v in kneeling.items()}
+    for bone in ("upperleg01", "lowerleg01"):
+        for side in ("L", "R"):
+            standing["body_pose"][0, BODY_BONES.index(f"{bone}.{side}")] = 0.0
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, KNEES + FEET] = 0.0
+
+    def picked(config_name: str, conf: torch.Tensor) -> tuple[torch.Tensor, list[str]]:
+        config = load_config(config_name)
+        fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+        fitter.events = []
+        rows = _Rows({k: v.clone() for k, v in standing.items()}, CAMERA.project(truth)[None],
+                     conf, conf[:, :25].clone(), [None], [()])
+        if config.hidden_leg_postures:
+            rows = fitter._hidden_leg_postures(rows, config.stages[3])
+        with torch.no_grad():
+            return body(rows.params, vertices=False).keypoints[0, :25], fitter.events
+
+    fitted, events = picked("prox", conf)
+    assert events == ["hidden legs posed kneeling"]
+    assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.01
+    with torch.no_grad():
+        held = body(standing, vertices=False).keypoints[0, :25]
+    seen = conf.clone()
+    seen[:, KNEES[0]] = 0.9
+    for config_name, c in (("prox", seen), ("prox-no-hidden-legs", conf)):
+        fitted, events = picked(config_name, c)
+        assert events == [] and torch.equal(fitted, held), config_name
+
+
 def test_limb_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     """A seated body under a tilted, rolled, off-centre camera whose knees the detector
     did not see (under a table) but whose ankles it did: besides the shins, each leg is

@@ -100,6 +100,8 @@ _POSTURES = {
 }
 
 
+# The postures whose legs a fit with its legs hidden is also tried with.
+_LEG_POSTURES = ("standing", "sitting", "kneeling", "crouching")
 # An arm held forward (shoulder flexed, elbow half bent): where arm restarts begin.
 _ARM_FORWARD = {"upperarm01": ([0.35, 0.0, -0.55], [0.35, 0.0, 0.55]),
                 "upperarm02": ([0.0, 0.0, 0.0],) * 2,
@@ -384,6 +386,17 @@ class AnnyBody(BodyModel):
                     pose[:, BODY_BONES.index(f"{bone}.{side}")] = torch.tensor(
                         values[SIDES.index(side)])
             variants.append({**params, "body_pose": pose})
+        return variants
+
+    def leg_postures(self, params: Params) -> dict[str, Params]:
+        variants = {}
+        for posture in _LEG_POSTURES:
+            legs = _legs(0.0, 0.0)
+            legs.update({bone: v for bone, v in _POSTURES[posture].items() if bone in legs})
+            pose = params["body_pose"].clone()
+            for bone, value in legs.items():
+                pose[:, BODY_BONES.index(bone)] = torch.tensor(value)
+            variants[posture] = {**params, "body_pose": pose}
         return variants
 
     def point_feet(self, params: Params, which: torch.Tensor) -> Params:

@@ -151,6 +151,12 @@ class BodyModel(ABC, torch.nn.Module):
         forward; none for a model whose pose is a learned latent code."""
         return []
 
+    def leg_postures(self, params: Params) -> dict[str, Params]:
+        """Copies of ``params`` with both legs posed as each start posture (standing,
+        sitting, kneeling, crouching) has them, the rest kept, by posture; none for a
+        model whose pose is a learned latent code."""
+        return {}
+
     def point_feet(self, params: Params, which: torch.Tensor) -> Params:
         """``params`` with the feet of ``which`` ((B, 2) bool, right then left) turned to
         full plantarflexion, toes along the shin; a model whose pose is a learned latent
