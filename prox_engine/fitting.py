@@ -585,15 +585,15 @@ class Fitter:
 
     def _hidden_leg_postures(self, rows: _Rows, stage: Stage) -> _Rows:
         """``rows`` (one per frame), each frame whose detector reports no knee or ankle
-        at HIDDEN or more, its fitted knees in the image (legs behind furniture, not cut
-        off by the image's edge), replaced by the best of its fit and copies with the legs
-        posed as each start posture's (:meth:`BodyModel.leg_postures`), ranked as the
-        starts are: the ``stage``'s data term plus how badly each can meet the scene at
-        its best scale (with the size prior there). Hidden legs are the start's guess,
-        which the keypoint stages keep and the scale search then places the body around
-        (development seed 315's kneeler behind a low table, its knees fitted 55-61 cm off
-        the floor: 264 -> 75 mm posed kneeling). It also fires where the image's edge cut
-        the legs off and the fit puts the knees inside it."""
+        at HIDDEN or more and whose fitted knees lie in the image (legs behind furniture,
+        or cut off by the image's edge where the fit brings the knees inside it) replaced
+        by the best of its fit and copies with the legs posed as each start posture's
+        (:meth:`BodyModel.leg_postures`), ranked as the starts are: the ``stage``'s data
+        term plus how badly each can meet the scene at its best scale (with the size
+        prior there). Hidden legs are the start's guess, which the keypoint stages keep
+        and the scale search then places the body around (development seed 315's
+        kneeler behind a low table, its knees fitted 55-61 cm off the floor: 264 -> 75 mm
+        posed kneeling)."""
         postures = self.body.leg_postures(rows.params)
         with torch.no_grad():
             knees = self.body(rows.params, vertices=False).keypoints[:, KNEES]
@@ -613,8 +613,8 @@ class Fitter:
                                by_scene=True, priors=False)
         for frame, (row, group) in enumerate(zip(best, lbfgs.sized_groups(counts))):
             if row != group.start:
-                self.events.append(f"hidden legs posed {names[row - group.start]}"
-                                   + (f" (frame {frame} of the batch)" if frame else ""))
+                self.events.append(f"hidden legs posed {names[row - group.start]}" + (
+                    f" (frame {frame} of the batch)" if len(counts) > 1 else ""))
         return wide.taken(best)
 
     def _legs_onto_rays(self, kp: torch.Tensor, rows: _Rows, hip: int, knee: int,
