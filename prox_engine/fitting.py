@@ -594,12 +594,16 @@ class Fitter:
         and the scale search then places the body around (development seed 315's
         kneeler behind a low table, its knees fitted 55-61 cm off the floor: 264 -> 75 mm
         posed kneeling)."""
+        hidden = (rows.detected[:, [*KNEES, *ANKLES]] < HIDDEN).all(1)
+        if not bool(hidden.any()):  # most frames: no variant built, no body posed
+            return rows
         postures = self.body.leg_postures(rows.params)
+        if not postures:
+            return rows
         with torch.no_grad():
             knees = self.body(rows.params, vertices=False).keypoints[:, KNEES]
-        hidden = ((rows.detected[:, [*KNEES, *ANKLES]] < HIDDEN).all(1)
-                  & self.camera.in_image(self.camera.project(knees)).all(1))
-        if not postures or not bool(hidden.any()):
+        hidden &= self.camera.in_image(self.camera.project(knees)).all(1)
+        if not bool(hidden.any()):
             return rows
         names = ["fitted", *postures]
         tried = torch.stack([torch.ones_like(hidden), *[hidden] * len(postures)], 1)
