@@ -62,6 +62,10 @@ class FitConfig:
     # scale is searched against the scene too, before its contact stage, which rescales
     # the body: the size then changes from frame to frame, as single frames' do.
     sequence_scale_search: bool = False
+    # ... its size prior centred on the anchor frame's size (a person's size does not
+    # change between frames); off, on the neighbour's, so that each frame's search could
+    # move the size a few per cent on from the last (Fitter._sizes).
+    sequence_anchor_size: bool = False
     # Sequence mode's temporal term counts the keypoints' motion about the mid-hip (the
     # posture's change) rather than their motion (losses.temporal): the contact stage holds
     # the root, so a body that walked 20 cm could only meet its neighbour's keypoints by

@@ -127,7 +127,8 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                     previous = None  # do not warm-start across a gap
             if frames:
                 try:
-                    results = (_fit_from(fitter, frames[0], previous, anchor_px)
+                    results = (_fit_from(fitter, frames[0], previous, anchor or previous,
+                                         anchor_px)
                                if sequence and previous is not None
                                else _fit_fresh(fitter, frames))
                 except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
@@ -212,9 +213,11 @@ def _checked_swap(fitter: Fitter, frame: Frame, result: FitResult) -> FitResult:
     return kept
 
 
-def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: float
-              ) -> list[FitResult]:
-    """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``). Where that
+def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor: FitResult,
+              anchor_px: float) -> list[FitResult]:
+    """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``), with
+    ``config.sequence_anchor_size`` the scale search's size prior centred on the size of
+    the ``anchor`` frame's fit (``anchor_px`` from its keypoints). Where that
     lost the keypoints, or one limb's, or keeps overriding the detector's sides
     (:func:`refit_reason`), the frame is fitted again from scratch, and the sequence goes
     on from that fit, with its own shape: a warm start that lost the keypoints may still
@@ -222,8 +225,9 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor_px: floa
     fresh fit's 13.4), which the fresh fit's scale search does not inherit. Where its
     labelling overrides the detector against the frame's own start search, the fit
     nearer the keypoints of it and a fit from scratch goes on (:func:`_checked_labels`)."""
+    sized_as = anchor if fitter.config.sequence_anchor_size else previous
     results = fitter.fit([frame], warm_start=previous.params,
-                         previous_keypoints=previous.keypoints[None])
+                         previous_keypoints=previous.keypoints[None], sized_as=sized_as.params)
     errors = _errors(fitter, results[0], frame)
     error_px = float(errors.nanmean())
     why = refit_reason(fitter.config, error_px, anchor_px,

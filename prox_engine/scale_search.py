@@ -191,7 +191,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                toes: torch.Tensor | None = None, axes: torch.Tensor | None = None,
                faint_joints: list[torch.Tensor] | None = None,
                ceilings: torch.Tensor | None = None,
-               counted_parts: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               counted_parts: torch.Tensor | None = None,
+               sizes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
@@ -204,16 +205,17 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     ``vertices`` and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part, of which a body counts those ``counted_parts`` ((B, P) bool;
-    :func:`standing_counts`) and the others as missing. Returns (B,) scales and (B,)
-    their costs without the size prior (0: every part touches, nothing enters, the body
-    rests on a surface): how well the body can meet the scene at all, comparable between
-    bodies fitted at different sizes. Scales that cannot win are not evaluated
+    :func:`standing_counts`) and the others as missing. The size prior reads each body's
+    size at a scale as ``sizes`` ((B,); without, 1) times the scale (:func:`size_prior`).
+    Returns (B,) scales and (B,) their costs without the size prior (0: every part
+    touches, nothing enters, the body rests on a surface): how well the body can meet the
+    scene at all, comparable between bodies fitted at different sizes. Scales that cannot win are not evaluated
     (:func:`bounded_search`), nor those whose total (cost and size prior) cannot go under
     the body's ``ceilings`` ((B,)): a body whose total cannot returns one over its
     ceiling, or scale 1 and an infinite cost. All bodies' scales are evaluated together,
     a round of the search at a time (the start choice searches up to 26 bodies at once in
     batches: one call of each scene query per body and round cost a fifth of the search)."""
-    prior = size_prior(SCALES)
+    prior = size_prior(SCALES, None if sizes is None else sizes[:, None])
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     placed, carrying = vertices[:, sampled], carrying[sampled]
     counted = torch.ones(len(sampled)) if toes is None else ~toes[sampled]
@@ -277,20 +279,24 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
 
     ceilings = torch.full((len(vertices),), math.inf) if ceilings is None else ceilings
     best, lowest_cost = [], []
-    for picked, cost in bounded_search(cost_at, rays, prior, ceilings):
+    prior = prior.expand(len(vertices), -1)
+    for b, (picked, cost) in enumerate(bounded_search(cost_at, rays, prior, ceilings)):
         if len(picked) == 0:
             best.append(torch.tensor(1.0))
             lowest_cost.append(torch.tensor(math.inf))
             continue
-        pick = int((cost + prior[picked]).argmin())
+        pick = int((cost + prior[b, picked]).argmin())
         best.append(SCALES[picked[pick]])
         lowest_cost.append(cost[pick])
     return torch.stack(best), torch.stack(lowest_cost)
 
 
-def size_prior(scales: torch.Tensor) -> torch.Tensor:
-    """The weak prior on body size of a body scaled by ``scales`` from its fitted size."""
-    return PRIOR_WEIGHT * (torch.log(scales) / SCALE_SIGMA) ** 2 / 2
+def size_prior(scales: torch.Tensor, sizes: torch.Tensor | None = None) -> torch.Tensor:
+    """The weak prior on body size of a body scaled by ``scales`` whose size is ``sizes``
+    (1 without) times the size the prior centres on (the prior-mean body's, or a
+    sequence's anchor's: Fitter._sizes)."""
+    size = scales if sizes is None else scales * sizes
+    return PRIOR_WEIGHT * (torch.log(size) / SCALE_SIGMA) ** 2 / 2
 
 
 def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
@@ -300,12 +306,13 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
     ``cost_at`` (bodies (R,), indices (R,), limits (R,) -> (R,) costs >= 0 of contact,
     penetration and support, or inf where over the limit: the most each scale can cost and
     still beat the lowest total evaluated) and their costs with the body's ``rays`` ((B,
-    97)) added. The other terms being >= 0, ``rays`` plus the size ``prior`` (97,) bounds
-    each scale's total from below: each body's scales are evaluated in the order of that
-    bound, FIRST_CHUNK and then CHUNK at a time, and those whose bound exceeds the lowest
+    97)) added. The other terms being >= 0, ``rays`` plus the size ``prior`` ((97,), or
+    (B, 97) per body) bounds each scale's total from below: each body's scales are
+    evaluated in the order of that bound, FIRST_CHUNK and then CHUNK at a time, and those whose bound exceeds the lowest
     total found, or the body's ``ceilings`` (B,), are not, since they cannot win; each
     round evaluates every body's next chunk in one call. The same pick as evaluating every
     scale, where it is under the ceiling; none (empty) where no bound is."""
+    prior = prior.expand_as(rays)
     bound = rays + prior
     sizes = [FIRST_CHUNK, *[CHUNK] * math.ceil((len(SCALES) - FIRST_CHUNK) / CHUNK)]
     sizes[-1] -= sum(sizes) - len(SCALES)
@@ -326,7 +333,7 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
             [evaluated[b] - bound[b, chunk] + SLACK for b, chunk in asked]))
         for (b, chunk), cost in zip(asked, found.split([len(c) for _, c in asked])):
             cost = cost + rays[b, chunk]
-            evaluated[b] = torch.minimum(evaluated[b], (cost + prior[chunk]).min())
+            evaluated[b] = torch.minimum(evaluated[b], (cost + prior[b, chunk]).min())
             picked[b].append(chunk)
             costs[b].append(cost)
         running = [b for b, _ in asked]

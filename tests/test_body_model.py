@@ -171,6 +171,25 @@ def test_self_penetration_detects_arm_in_torso(body):
     assert self_penetration(body(params), body).item() > 0
 
 
+def test_relative_size_is_one_for_the_mean_body_and_grows_with_height(body):
+    """A body's size over the prior-mean body's: exactly 1 for the mean shape (however
+    posed), above 1 for a taller shape, below for a shorter one, as its standing height."""
+    params = body.init_params(3, "sitting")
+    assert torch.equal(body.relative_size(params), torch.ones(3))
+    height = 4  # the shape logits' height
+    params["shape"][1, height] += 1.0
+    params["shape"][2, height] -= 1.0
+    sizes = body.relative_size(params)
+    standing = body.init_params(3)
+    standing["shape"] = params["shape"]
+    with torch.no_grad():
+        vertices = body(standing).vertices
+    up = body.up_axis()
+    heights = (vertices @ up).max(1).values - (vertices @ up).min(1).values
+    assert float(sizes[1]) > 1.03 and float(sizes[2]) < 0.97, sizes
+    assert torch.allclose(sizes, heights / heights[0], atol=0.01), (sizes, heights)
+
+
 def test_shape_prior_is_annys_age_conditioned_beta_likelihood(body):
     """The one-table shape prior equals anny's own sixteen Beta distributions, values and
     gradients, across genders and ages (including ages between and beyond their anchors)."""

@@ -1266,6 +1266,30 @@ def test_sequence_mode_can_search_each_frames_scale(body):
     assert searched < 0.08 and carried > 0.2, (searched, carried)
 
 
+def test_sequence_mode_centres_the_size_prior_on_the_anchors_size(body):
+    """A standing body under a tilted camera with the floor 3 m below it (no scale can
+    meet the scene: only the size prior tells scales apart), warm-started exactly: with
+    the anchor's fit 8 % bigger (`prox`, ``sized_as`` the anchor) the scale search
+    takes the body to the anchor's size; centred on its neighbour's size (the warm start
+    itself, `prox-neighbour-size`), it keeps its own."""
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world, height=-3.0)
+    params = _posed_params(body, cam2world)
+    with torch.no_grad():
+        truth = body(params).keypoints[0, :25]
+    fitter = Fitter(body, CAMERA, load_config("prox"), scene)
+    anchor = {k: v.clone() for k, v in params.items()}
+    fitter._rescale(anchor, torch.tensor([1.08]), frames=1)
+    assert abs(float(body.relative_size(anchor)[0]) - 1.08) < 0.01
+
+    def size(sized_as: dict[str, torch.Tensor]) -> float:
+        result = fitter.fit([frame_of(truth)], warm_start=params, sized_as=sized_as)[0]
+        return float(body.relative_size(result.params)[0])
+
+    as_anchor, as_neighbour = size(anchor), size(params)
+    assert as_anchor > 1.05 and abs(as_neighbour - 1) < 0.02, (as_anchor, as_neighbour)
+
+
 def test_sequence_mode_temporal_term_about_the_root_lets_a_walking_body_stand(body):
     """A body standing on the floor under a tilted camera, warm-started exactly, whose
     previous frame's fit stood 25 cm farther along the camera's axis (it walked toward
@@ -1317,7 +1341,7 @@ def test_sequence_mode_refits_a_frame_that_floats_and_keeps_the_fit_on_the_floor
         config = load_config(name)
         config.sequence_scale_search = False
         fitter = Fitter(body, CAMERA, config, scene)
-        return _fit_from(fitter, frame_of(truth), previous, anchor_px=1.0)[0]
+        return _fit_from(fitter, frame_of(truth), previous, previous, anchor_px=1.0)[0]
 
     kept, ablation = fit("prox"), fit("prox-no-floating-refit")
     assert underside_gap(ablation.vertices, scene) > FLOATING
@@ -1350,7 +1374,7 @@ def test_sequence_mode_refits_a_frame_whose_chain_overrides_its_own_start_search
 
     def fit(config: str, frame: Frame, previous):
         return _fit_from(Fitter(body, CAMERA, load_config(config), scene), frame, previous,
-                         anchor_px=1.0)[0]
+                         previous, anchor_px=1.0)[0]
 
     def error(result) -> float:
         return float((result.keypoints[:25] - keypoints[:25]).norm(dim=1).mean())

@@ -1092,6 +1092,15 @@ def test_scale_search_skips_only_scales_that_cannot_win():
         assert len(picked) == 0 or float((cost + prior[picked]).min()) > least[b] - 1e-3
     below = (hidden + prior).min(1).values - 1e-3
     assert all(len(picked) == 0 for picked, _ in search(below))
+    # a size prior per body: where the scene tells no scale apart, each body's pick is
+    # the scale that takes its size to the prior's centre
+    from prox_engine.scale_search import size_prior
+    sizes = torch.tensor([1.0, 1.1, 0.9])
+    found = bounded_search(lambda b, i, _: torch.ones(len(i)), torch.zeros(3, count),
+                           size_prior(SCALES, sizes[:, None]), torch.full((3,), math.inf))
+    for (picked, cost), size in zip(found, sizes):
+        scale = float(SCALES[picked[(cost + size_prior(SCALES[picked], size)).argmin()]])
+        assert abs(scale * float(size) - 1) < 0.004, (scale, size)
     flat = torch.ones(1, count)
     flat[0, 48] = 0.0  # a body that meets the scene at its fitted size
     (picked, _), = bounded_search(lambda b, i, _: flat[b, i], torch.zeros(1, count), prior,

@@ -171,6 +171,20 @@ class BodyModel(ABC, torch.nn.Module):
     def shape_group(self) -> list[str]:
         """Names of the parameters that describe body shape (frozen in sequence mode)."""
 
+    def relative_size(self, params: Params) -> torch.Tensor:
+        """(B,) each body's size over the prior-mean body's: the diagonal of its standing
+        rest pose's bounding box (exactly 1 where the shape is the mean)."""
+        mean, names = self.init_params(1), self.shape_group()
+        rows = len(params[names[0]])
+        if all(torch.equal(params[n], mean[n].expand_as(params[n])) for n in names):
+            return torch.ones(rows)
+        standing = self.init_params(rows)
+        standing.update({n: params[n].detach() for n in names})
+        with torch.no_grad():
+            spans = [(v.max(1).values - v.min(1).values).norm(dim=1) for v in (
+                self(standing, spheres=False).vertices, self(mean, spheres=False).vertices)]
+        return spans[0] / spans[1]
+
     @property
     def num_vertices(self) -> int:
         return len(self.vertex_parts)
