@@ -173,7 +173,8 @@ def test_self_penetration_detects_arm_in_torso(body):
 
 def test_relative_size_is_one_for_the_mean_body_and_grows_with_height(body):
     """A body's size over the prior-mean body's: exactly 1 for the mean shape (however
-    posed), above 1 for a taller shape, below for a shorter one, as its standing height."""
+    posed), above 1 for a taller shape, below for a shorter one, as its standing mesh's
+    height (anny measures its rest skeleton's, without posing a mesh)."""
     params = body.init_params(3, "sitting")
     assert torch.equal(body.relative_size(params), torch.ones(3))
     height = 4  # the shape logits' height

@@ -172,18 +172,22 @@ class BodyModel(ABC, torch.nn.Module):
         """Names of the parameters that describe body shape (frozen in sequence mode)."""
 
     def relative_size(self, params: Params) -> torch.Tensor:
-        """(B,) each body's size over the prior-mean body's: the diagonal of its standing
-        rest pose's bounding box (exactly 1 where the shape is the mean)."""
+        """(B,) each body's height (:meth:`rest_height`) over the prior-mean body's,
+        exactly 1 where the shape is the mean."""
         mean, names = self.init_params(1), self.shape_group()
-        rows = len(params[names[0]])
         if all(torch.equal(params[n], mean[n].expand_as(params[n])) for n in names):
-            return torch.ones(rows)
-        standing = self.init_params(rows)
-        standing.update({n: params[n].detach() for n in names})
+            return torch.ones(len(params[names[0]]))
         with torch.no_grad():
-            spans = [(v.max(1).values - v.min(1).values).norm(dim=1) for v in (
-                self(standing, spheres=False).vertices, self(mean, spheres=False).vertices)]
-        return spans[0] / spans[1]
+            return self.rest_height(params) / self.rest_height(mean)
+
+    def rest_height(self, params: Params) -> torch.Tensor:
+        """(B,) a measure of each body's height by its shape alone: its standing mesh's
+        span along :meth:`up_axis`."""
+        names = self.shape_group()
+        standing = self.init_params(len(params[names[0]]))
+        standing.update({n: params[n].detach() for n in names})
+        along = self(standing, spheres=False).vertices @ self.up_axis()
+        return along.max(1).values - along.min(1).values
 
     @property
     def num_vertices(self) -> int:
