@@ -208,7 +208,7 @@ class Fitter:
             if config.soft_sink > 0 and self.contact_normals is not None:
                 self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
         self.events: list[str] = []  # of the current fit (see FitResult.events)
-        self._sized_as: Params | None = None  # of the current fit (see fit)
+        self._size_unit: torch.Tensor | None = None  # of the current fit (see _sizes)
         # The frames last initialised: their keypoints, starts, labellings and events.
         self._started: tuple[list[np.ndarray], Params, list[tuple[str, ...]], list[str]] = (
             [], {}, [], [])
@@ -249,7 +249,7 @@ class Fitter:
         ``warm_start`` with the configuration's sequence stages and the temporal term,
         the scale search's size prior centred on the size of the body ``sized_as`` (one
         row; without it, on the prior-mean body's: see :meth:`_sizes`)."""
-        self._sized_as = sized_as
+        self._size_unit = None if sized_as is None else self.body.relative_size(sized_as)
         with self._counting():
             return self._fit(frames, warm_start, previous_keypoints, start)
 
@@ -483,7 +483,7 @@ class Fitter:
         are then searched in the order of their ``score`` (the objective), each skipping
         the scales at which it cannot beat its frame's best so far: the same choice, for
         a fifth fewer scales evaluated on the speed benchmark."""
-        search, sizes = self._scale_searcher(params, detected), self._sizes(params)
+        search, sizes = self._scale_searcher(params, detected)
         if not self.config.start_choice_size:
             return search(torch.arange(len(score)))[1]
         weight = self.config.start_scene_weight
@@ -837,13 +837,15 @@ class Fitter:
         with the joints the detector clearly saw (``detected`` (B, 25), its confidences)
         in view and the legs it reports faintly out of it, and that scale's cost (see
         :mod:`scale_search`)."""
-        return self._scale_searcher(params, detected)(torch.arange(len(detected)))
+        return self._scale_searcher(params, detected)[0](torch.arange(len(detected)))
 
     def _scale_searcher(self, params: Params, detected: torch.Tensor
-                        ) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+                        ) -> tuple[Callable[..., tuple[torch.Tensor, torch.Tensor]],
+                                   torch.Tensor]:
         """:meth:`_scale_search` of the bodies ``params`` posed once, searched for the
         ``rows`` asked, each under its total's ceiling where ``ceilings`` are given
-        (:func:`scale_search.best_scale`)."""
+        (:func:`scale_search.best_scale`), and the bodies' sizes as its size prior reads
+        them (:meth:`_sizes`)."""
         cfg, body = self.config, self.body
         with torch.no_grad():
             out = body(params)
@@ -872,7 +874,7 @@ class Fitter:
                               [faint[r] for r in rows] if cfg.scale_faint_legs else None,
                               ceilings, None if counted is None else counted[rows],
                               sizes[rows])
-        return search
+        return search, sizes
 
     def _sizes(self, params: Params) -> torch.Tensor:
         """(B,) each body's size as the scale search's size prior reads it
@@ -883,8 +885,7 @@ class Fitter:
         development seed 311's lying body grew from 6 % to 17 % over the truth's stature
         in five frames)."""
         sizes = self.body.relative_size(params)
-        return sizes if self._sized_as is None else sizes / self.body.relative_size(
-            self._sized_as)
+        return sizes if self._size_unit is None else sizes / self._size_unit
 
     def _faint_legs(self, detected: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
         """(..., 25) bool: the knees and ankles the detector reports under HIDDEN

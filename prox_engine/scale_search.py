@@ -209,13 +209,15 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     size at a scale as ``sizes`` ((B,); without, 1) times the scale (:func:`size_prior`).
     Returns (B,) scales and (B,) their costs without the size prior (0: every part
     touches, nothing enters, the body rests on a surface): how well the body can meet the
-    scene at all, comparable between bodies fitted at different sizes. Scales that cannot win are not evaluated
-    (:func:`bounded_search`), nor those whose total (cost and size prior) cannot go under
-    the body's ``ceilings`` ((B,)): a body whose total cannot returns one over its
-    ceiling, or scale 1 and an infinite cost. All bodies' scales are evaluated together,
-    a round of the search at a time (the start choice searches up to 26 bodies at once in
-    batches: one call of each scene query per body and round cost a fifth of the search)."""
-    prior = size_prior(SCALES, None if sizes is None else sizes[:, None])
+    scene at all, comparable between bodies fitted at different sizes. Scales that cannot
+    win are not evaluated (:func:`bounded_search`), nor those whose total (cost and size
+    prior) cannot go under the body's ``ceilings`` ((B,)): a body whose total cannot
+    returns one over its ceiling, or scale 1 and an infinite cost. All bodies' scales are
+    evaluated together, a round of the search at a time (the start choice searches up to
+    26 bodies at once in batches: one call of each scene query per body and round cost a
+    fifth of the search)."""
+    sizes = torch.ones(len(vertices)) if sizes is None else sizes
+    prior = size_prior(SCALES, sizes[:, None])  # (B, 97)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     placed, carrying = vertices[:, sampled], carrying[sampled]
     counted = torch.ones(len(sampled)) if toes is None else ~toes[sampled]
@@ -279,7 +281,6 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
 
     ceilings = torch.full((len(vertices),), math.inf) if ceilings is None else ceilings
     best, lowest_cost = [], []
-    prior = prior.expand(len(vertices), -1)
     for b, (picked, cost) in enumerate(bounded_search(cost_at, rays, prior, ceilings)):
         if len(picked) == 0:
             best.append(torch.tensor(1.0))
@@ -308,10 +309,11 @@ def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
     still beat the lowest total evaluated) and their costs with the body's ``rays`` ((B,
     97)) added. The other terms being >= 0, ``rays`` plus the size ``prior`` ((97,), or
     (B, 97) per body) bounds each scale's total from below: each body's scales are
-    evaluated in the order of that bound, FIRST_CHUNK and then CHUNK at a time, and those whose bound exceeds the lowest
-    total found, or the body's ``ceilings`` (B,), are not, since they cannot win; each
-    round evaluates every body's next chunk in one call. The same pick as evaluating every
-    scale, where it is under the ceiling; none (empty) where no bound is."""
+    evaluated in the order of that bound, FIRST_CHUNK and then CHUNK at a time, and those
+    whose bound exceeds the lowest total found, or the body's ``ceilings`` (B,), are not,
+    since they cannot win; each round evaluates every body's next chunk in one call. The
+    same pick as evaluating every scale, where it is under the ceiling; none (empty) where
+    no bound is."""
     prior = prior.expand_as(rays)
     bound = rays + prior
     sizes = [FIRST_CHUNK, *[CHUNK] * math.ceil((len(SCALES) - FIRST_CHUNK) / CHUNK)]
