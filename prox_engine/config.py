@@ -56,6 +56,9 @@ class FitConfig:
     # ... and searches the unseen feet of kneeling legs pointed along the shins (see
     # scale_search.FLAT_SHIN)
     point_unseen_feet: bool = True
+    # ... and, placing the body (not choosing between starts), rests a body on its feet
+    # with a foot in view on its lowest vertices alone (see scale_search.FEET_CARRY_LEG)
+    scale_feet_carry: bool = False
     # Sequence mode warm-starts each frame from its neighbour's fit; off, the frame keeps
     # that fit's shape, and its depth is the one its keypoint stage reaches from the
     # neighbour's, which drifts along the camera rays frame after frame. On, each frame's

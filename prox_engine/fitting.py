@@ -22,9 +22,9 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, 
                         cut_legs, nothing_below_knees, side_swap, thighs_hidden)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
-from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, kneelers_toes,
-                           size_prior, standing_counts, standing_legs, toe_vertices,
-                           unseen_feet_on_kneeling_legs)
+from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, feet_carried,
+                           kneelers_toes, size_prior, standing_counts, standing_legs,
+                           toe_vertices, unseen_feet_on_kneeling_legs)
 from .scene import Scene
 from .with_gradient import with_gradient
 
@@ -837,15 +837,17 @@ class Fitter:
         with the joints the detector clearly saw (``detected`` (B, 25), its confidences)
         in view and the legs it reports faintly out of it, and that scale's cost (see
         :mod:`scale_search`)."""
-        return self._scale_searcher(params, detected)[0](torch.arange(len(detected)))
+        search, _ = self._scale_searcher(params, detected, self.config.scale_feet_carry)
+        return search(torch.arange(len(detected)))
 
-    def _scale_searcher(self, params: Params, detected: torch.Tensor
+    def _scale_searcher(self, params: Params, detected: torch.Tensor, feet_carry: bool = False
                         ) -> tuple[Callable[..., tuple[torch.Tensor, torch.Tensor]],
                                    torch.Tensor]:
         """:meth:`_scale_search` of the bodies ``params`` posed once, searched for the
         ``rows`` asked, each under its total's ceiling where ``ceilings`` are given
         (:func:`scale_search.best_scale`), and the bodies' sizes as its size prior reads
-        them (:meth:`_sizes`)."""
+        them (:meth:`_sizes`); with ``feet_carry``, bodies on their feet rest on them
+        alone (:func:`scale_search.feet_carried`)."""
         cfg, body = self.config, self.body
         with torch.no_grad():
             out = body(params)
@@ -862,6 +864,7 @@ class Fitter:
         counted = (standing_counts(standing_legs(joints, detected, up), self.standing_parts)
                    if bool(self.standing_parts.any()) and cfg.scale_standing_feet else None)
         sizes = self._sizes(params)
+        feet = feet_carried(joints, detected, up) if feet_carry else None
 
         def search(rows: torch.Tensor, ceilings: torch.Tensor | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -873,7 +876,7 @@ class Fitter:
                               self.toes, None if axes is None else axes[rows],
                               [faint[r] for r in rows] if cfg.scale_faint_legs else None,
                               ceilings, None if counted is None else counted[rows],
-                              sizes[rows])
+                              sizes[rows], None if feet is None else feet[rows])
         return search, sizes
 
     def _sizes(self, params: Params) -> torch.Tensor:

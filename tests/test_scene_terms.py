@@ -935,6 +935,65 @@ def test_scale_search_does_not_stand_a_body_on_its_hands(body):
     assert abs(float(scale) / 1.15 - 1.0) < 0.03
 
 
+def test_scale_search_rests_a_body_on_its_feet_not_on_a_shelf(body):
+    """A standing body fitted 20 % too small (too close, floating 30 cm over the floor)
+    whose buttocks happen to rest on a thin shelf at that size, seen from its side by a
+    tilted, rolled camera, its knees hidden. Buttocks can carry a body, and the size prior
+    favours the fitted size: under ``prox-no-feet-carry`` the search keeps it on the shelf.
+    Under ``prox``, a body on its feet with a foot clearly seen rests on its lowest
+    vertices alone, and the search scales it until its feet reach the floor; with the
+    feet not clearly seen it is kept on the shelf as before."""
+    from prox_engine.config import load_config
+    from prox_engine.fitting import Fitter
+    from prox_engine.geometry import axis_angle_to_matrix, matrix_to_axis_angle, vertex_normals
+    from prox_engine.keypoints import ANKLES, KNEES, SEEN, TOES
+    from prox_engine.scale_search import feet_carried
+    from prox_engine.synthetic import body_params, sitting_pose
+
+    from .test_fitting import tilted_camera
+
+    standing = body.init_params(1)
+    with torch.no_grad():
+        world = body(standing).vertices[0]
+    standing["transl"] = standing["transl"] - torch.tensor([0.0, 0.0, float(world[:, 2].min())])
+    world = world - torch.tensor([0.0, 0.0, float(world[:, 2].min())])  # soles at z = 0
+    cam2world = tilted_camera(position=(2.6, -0.9, 1.5), target=(0.0, 0.0, 0.8))
+    eye = torch.tensor(cam2world[:3, 3], dtype=torch.float32)
+    floor_z = float(eye[2] + 1.2 * (0.0 - eye[2]))  # the soles' height at 1.2 times
+    normals = vertex_normals(world[None], body.faces)[0]
+    seat = torch.isin(torch.arange(body.num_vertices), body.contact_parts["gluteus"])
+    seat &= normals[:, 2] < -0.5
+    assert int(seat.sum()) > 10
+    under = world[seat][world[seat][:, 2].argmin()].numpy()
+    shelf = trimesh.creation.box([0.25, 0.25, 0.03])
+    shelf.apply_translation([under[0], under[1], under[2] - 0.015 - 0.003])
+    room = trimesh.util.concatenate([plane_mesh(size=10.0, z=floor_z), shelf])
+    scene = _seen_scene(room, cam2world, dim=128, spacing=0.02)
+    world2cam = np.linalg.inv(cam2world)
+    rotation = torch.tensor(world2cam[:3, :3], dtype=torch.float32)
+    params = {**standing, "global_orient": matrix_to_axis_angle(
+        rotation @ axis_angle_to_matrix(standing["global_orient"])),
+        "transl": standing["transl"] @ rotation.T
+        + torch.tensor(world2cam[:3, 3], dtype=torch.float32)}
+    camera = Camera(fx=1000.0, fy=1000.0, cx=960.0, cy=540.0, width=1920, height=1080)
+    seen = torch.full((1, 25), 0.9)
+    seen[:, KNEES] = 0.1  # hidden, as by a table: the search counts every contact part
+    unseen_feet = seen.clone()
+    unseen_feet[:, [*ANKLES, *TOES]] = SEEN / 2
+
+    def scale(config: str, detected: torch.Tensor) -> float:
+        fitter = Fitter(body, camera, load_config(config), scene)
+        return float(fitter._scale_search(params, detected)[0][0])
+
+    assert abs(scale("prox-no-feet-carry", seen) - 1.0) < 0.03
+    assert abs(scale("prox", seen) / 1.2 - 1.0) < 0.03
+    assert abs(scale("prox", unseen_feet) - 1.0) < 0.03
+    sitting = body_params(body, sitting_pose(), 0.0, {})  # thighs level: not on its feet
+    with torch.no_grad():
+        joints = body(sitting, vertices=False).keypoints[:, :25]
+    assert not bool(feet_carried(joints, torch.full((1, 25), 0.9), torch.tensor([0., 0., 1.])))
+
+
 def test_start_choice_asks_which_start_can_sit_on_the_chair(tmp_path, body):
     """Two starts of one frame in front of a chair: the person sitting on it, and the same
     trunk with its legs hanging straight (through the seat and the floor at the fitted size,
