@@ -59,6 +59,9 @@ class FitConfig:
     # ... and, placing the body (not choosing between starts), rests a body on its feet
     # with a foot in view on its lowest vertices alone (see scale_search.FEET_CARRY_LEG)
     scale_feet_carry: bool = False
+    # A body fitted from scratch and placed, whose unseen toes it sinks into the scene, has
+    # those feet turned to their neutral ankle before the scene stages (fitting.SUNK_TOES)
+    lift_sunk_feet: bool = False
     # Sequence mode warm-starts each frame from its neighbour's fit; off, the frame keeps
     # that fit's shape, and its depth is the one its keypoint stage reaches from the
     # neighbour's, which drifts along the camera rays frame after frame. On, each frame's

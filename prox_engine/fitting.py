@@ -18,8 +18,8 @@ from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
 from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES,
-                        LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
-                        cut_legs, nothing_below_knees, side_swap, thighs_hidden)
+                        LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, TOES, Keypoints,
+                        ankle_seen, cut_legs, nothing_below_knees, side_swap, thighs_hidden)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, feet_carried,
@@ -51,6 +51,11 @@ KNEE_REACH = 0.2
 # and sitters sat 4-13 % of their vertices deep in their seats) and 6 also added more
 # than this (a seated body thrown from a seat it had sunk 7 cm into: 334 -> 4163).
 SCENE_GUARD_FLOOR = 1000.0
+
+# A foot whose toes the detector did not clearly see, and which the placed fit sinks more
+# than this (m) into the scene with its toes, is turned to its neutral ankle before the
+# scene stages (FitConfig.lift_sunk_feet).
+SUNK_TOES = 0.02
 
 # Terms that read the posed mesh; stages without them pose keypoints and spheres only,
 # and stages with the scene terms alone pose only the vertices those read.
@@ -184,6 +189,7 @@ class Fitter:
         self.penetration_tolerance: float | torch.Tensor = config.penetration_tolerance
         self.toes, self.scene_subset, self.penetration_vertices, self.contact_normals = (
             None, None, None, None)
+        self.toe_sides: torch.Tensor | None = None  # (2, V) right, then left
         # The whole mesh's normals, for the scale search (a kernel: 1.2 ms for two bodies
         # where geometry.vertex_normals took 3.1); a fit without a scene never reads them
         self.vertex_normals: VertexNormals | None = None
@@ -191,9 +197,10 @@ class Fitter:
             self.vertex_normals = VertexNormals(body.faces, torch.arange(body.num_vertices))
             with torch.no_grad():  # the standing mean body, which both sets are chosen on
                 rest = body(body.init_params(1))
+            self.toe_sides = toe_vertices(body.vertex_parts, rest.vertices[0],
+                                          rest.keypoints[0, ANKLES])
             if config.scale_free_toes:  # the vertices the scale search does not count
-                self.toes = toe_vertices(body.vertex_parts, rest.vertices[0],
-                                         rest.keypoints[0, ANKLES])
+                self.toes = self.toe_sides.any(0)
             self.scene_subset, self.penetration_vertices, self.contact_normals = (
                 self._scene_vertices(rest.vertices[0]))
             # How deep each vertex may enter the scan beyond penetration_tolerance: the
@@ -352,6 +359,8 @@ class Fitter:
                     rows = self._hidden_leg_postures(rows, stages[index - 1])
                 scale, _ = self._scale_search(rows.params, rows.detected)
                 self._rescale(rows.params, scale, len(frames))
+                if cfg.lift_sunk_feet and warm_start is None:
+                    rows.params.update(self._lifted_feet(rows.params, rows.detected > SEEN))
                 stage_seconds["scale_search"] = time.perf_counter() - t0
                 stage_evaluations["scale_search"] = self.evaluations - before
                 rescaled = True
@@ -905,6 +914,39 @@ class Fitter:
             keypoints = self.body(params, vertices=False).keypoints[:, BODY]
         which = unseen_feet_on_kneeling_legs(keypoints, seen, self.scene.up_in_camera())
         return self.body.point_feet(params, which) if bool(which.any()) else params
+
+    def _lifted_feet(self, params: Params, seen: torch.Tensor) -> Params:
+        """``params`` with each foot none of whose toes is ``seen`` ((B, 25) bool) and
+        whose toes sink more than SUNK_TOES into the scene turned to its neutral ankle,
+        toes at right angles to the shin, where that sinks them less. Unseen toes are the
+        pose prior's and the start's guess; a foot 5-7 cm deep in the floor is pulled out
+        by the scene stages' first steps turning and bending the whole body, and the
+        scene guard then undoes them, penetration and all (held-out seed 103's leg-up
+        sitter: 9-11 % of the body more than 1 cm inside the scan in four frames). Fits
+        from scratch only: a warm-started frame's feet are its neighbour's, which the
+        scene stages placed."""
+        unseen = ~seen[:, TOES].reshape(len(seen), 2, 2).any(2)  # (B, 2) right, left
+        if not bool(unseen.any()):
+            return params
+
+        def sunk(p: Params) -> torch.Tensor:  # (B, 2) deepest toe vertex, per foot
+            with torch.no_grad():
+                vertices = self.body(p).vertices
+            return torch.stack([torch.relu(-self.scene.signed_distance(
+                vertices[:, toes])).amax(1) for toes in self.toe_sides], 1)
+
+        depth = sunk(params)
+        which = unseen & (depth > SUNK_TOES)
+        if not bool(which.any()):
+            return params
+        flat = self.body.point_feet(params, which, plantarflexion=0.0)
+        lifted = which & (sunk(flat) < depth)
+        if not bool(lifted.any()):
+            return params
+        self.events.append("toes sunk in the scene: the " + " and ".join(
+            f"{side} foot" for side, any_ in zip(("right", "left"), lifted.any(0)) if any_)
+            + " turned to its neutral ankle")
+        return self.body.point_feet(params, lifted, plantarflexion=0.0)
 
     def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:
         """Per body, the scale about the camera centre that puts its camera-facing surface

@@ -185,14 +185,12 @@ def kneelers_toes(keypoints: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
 
 
 def toe_vertices(parts: list[str], rest: torch.Tensor, ankles: torch.Tensor) -> torch.Tensor:
-    """(V,) bool: the foot vertices of a body at rest (``rest`` (V, 3), per-vertex
-    ``parts``) more than TOE_REACH from their side's ankle (``ankles`` (2, 3), right and
-    left, as keypoints.ANKLES)."""
-    toes = torch.zeros(len(parts), dtype=torch.bool)
-    for side, ankle in zip(("right_foot", "left_foot"), ankles):
-        foot = torch.tensor([p == side for p in parts])
-        toes |= foot & ((rest - ankle).norm(dim=1) > TOE_REACH)
-    return toes
+    """(2, V) bool, per foot (right, left): its vertices on a body at rest (``rest`` (V,
+    3), per-vertex ``parts``) more than TOE_REACH from its ankle (``ankles`` (2, 3), right
+    and left, as keypoints.ANKLES)."""
+    return torch.stack([torch.tensor([p == side for p in parts])
+                        & ((rest - ankle).norm(dim=1) > TOE_REACH)
+                        for side, ankle in zip(("right_foot", "left_foot"), ankles)])
 
 
 def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> torch.Tensor:

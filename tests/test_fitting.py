@@ -982,6 +982,50 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
         assert events == [] and torch.equal(fitted, held), config_name
 
 
+def test_a_placed_fits_unseen_toes_sunk_in_the_floor_are_lifted(body):
+    """A body standing on the floor under a tilted, rolled, off-centre camera, its left
+    foot pointed down (toes 8 cm through the floor) and its toes unseen: before the scene
+    stages that foot is turned to its neutral ankle, toes out of the floor, the right foot
+    and every other joint kept. With the toes seen, or the foot pointed so little that its
+    toes sink under SUNK_TOES, nothing changes; `prox-sunk-feet` switches it off."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.fitting import SUNK_TOES
+    from prox_engine.keypoints import TOES
+
+    cam2world = tilted_camera()
+    scene = floor_scene(cam2world)
+    fitter = Fitter(body, CAMERA, load_config("prox"), scene)
+    left = BODY_BONES.index("foot.L")
+
+    def pointed(angle: float) -> dict[str, torch.Tensor]:
+        params = _posed_params(body, cam2world)
+        params["body_pose"][0, left, 0] = angle
+        return params
+
+    def toes_depth(params: dict[str, torch.Tensor]) -> float:
+        with torch.no_grad():
+            vertices = body(params).vertices[0, fitter.toe_sides[1]]
+        return float(-scene.signed_distance(vertices[None]).min())
+
+    unseen = torch.ones(1, 25, dtype=torch.bool)
+    unseen[:, TOES] = False
+    sunk = pointed(0.7)
+    assert toes_depth(sunk) > 0.08
+    fitter.events = []
+    lifted = fitter._lifted_feet(sunk, unseen)
+    assert fitter.events == ["toes sunk in the scene: the left foot turned to its neutral ankle"]
+    assert toes_depth(lifted) < SUNK_TOES
+    assert torch.equal(lifted["body_pose"][0, left], torch.zeros(3))
+    kept = torch.arange(len(BODY_BONES)) != left
+    assert torch.equal(lifted["body_pose"][:, kept], sunk["body_pose"][:, kept])
+    shallow = pointed(0.1)
+    assert 0.0 < toes_depth(shallow) < SUNK_TOES
+    for params, seen in ((sunk, torch.ones(1, 25, dtype=torch.bool)), (shallow, unseen)):
+        fitter.events = []
+        assert fitter._lifted_feet(params, seen) is params and fitter.events == []
+    assert not load_config("prox-sunk-feet").lift_sunk_feet
+
+
 def test_limb_restarts_turn_a_leg_with_an_unseen_knee_about_the_hip(body):
     """A seated body under a tilted, rolled, off-centre camera whose knees the detector
     did not see (under a table) but whose ankles it did: besides the shins, each leg is

@@ -741,7 +741,8 @@ def test_scale_search_keeps_a_body_whose_toes_point_into_the_floor(body):
     cam2world = look_at(np.array([0.6, -3.0, 1.4]), np.array([0.1, 0.0, 0.8]))
     scene = _seen_scene(floor, cam2world, dim=96)
     camera = _in_camera(pointed + lift, cam2world)[None]
-    toes = toe_vertices(body.vertex_parts, rest.vertices[0], rest.keypoints[0, ANKLES])
+    toes = toe_vertices(body.vertex_parts, rest.vertices[0],
+                        rest.keypoints[0, ANKLES]).any(0)
     parts = [body.contact_parts[p] for p in ("left_foot", "right_foot")]
     scale, _ = best_scale(camera, vertex_normals(camera, body.faces), body.scene_vertices,
                           _carrying(body), parts, scene, True, True, rho=0.05,

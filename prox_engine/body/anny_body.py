@@ -399,11 +399,13 @@ class AnnyBody(BodyModel):
             variants[posture] = {**params, "body_pose": pose}
         return variants
 
-    def point_feet(self, params: Params, which: torch.Tensor) -> Params:
+    def point_feet(self, params: Params, which: torch.Tensor,
+                   plantarflexion: float | None = None) -> Params:
         pose = params["body_pose"].clone()
         for side, rows in zip(("R", "L"), which.T):
             bone = BODY_BONES.index(f"foot.{side}")
-            pose[rows, bone] = torch.stack([self.limit_hi[bone, 0], *pose.new_zeros(2)])
+            angle = self.limit_hi[bone, 0] if plantarflexion is None else plantarflexion
+            pose[rows, bone] = torch.stack([torch.as_tensor(angle), *pose.new_zeros(2)])
         return {**params, "body_pose": pose}
 
     def root_pivot(self, params: Params) -> torch.Tensor:

@@ -157,10 +157,12 @@ class BodyModel(ABC, torch.nn.Module):
         model whose pose is a learned latent code."""
         return {}
 
-    def point_feet(self, params: Params, which: torch.Tensor) -> Params:
+    def point_feet(self, params: Params, which: torch.Tensor,
+                   plantarflexion: float | None = None) -> Params:
         """``params`` with the feet of ``which`` ((B, 2) bool, right then left) turned to
-        full plantarflexion, toes along the shin; a model whose pose is a learned latent
-        code keeps them as they are."""
+        ``plantarflexion`` (rad; 0: the neutral ankle, toes at right angles to the shin;
+        None: the joint's limit, toes along the shin); a model whose pose is a learned
+        latent code keeps them as they are."""
         return params
 
     def prox_result(self, params: Params, index: int) -> dict | None:
