@@ -53,9 +53,13 @@ KNEE_REACH = 0.2
 SCENE_GUARD_FLOOR = 1000.0
 
 # A foot whose toes the detector did not clearly see, and which the placed fit sinks more
-# than this (m) into the scene with its toes, is turned to its neutral ankle before the
-# scene stages (FitConfig.lift_sunk_feet).
+# than this (m) into the scene with its toes, is turned toward its neutral ankle before
+# the scene stages (FitConfig.lift_sunk_feet): by the first of these shares of its turn
+# kept that sinks its toes no deeper, or else by the one that sinks them least, where
+# that lifts them by LIFT_MIN (m) or more (less, the scene stages bend it as far).
 SUNK_TOES = 0.02
+LIFT_KEPT = (2 / 3, 1 / 3, 0.0)
+LIFT_MIN = 0.01
 
 # Terms that read the posed mesh; stages without them pose keypoints and spheres only,
 # and stages with the scene terms alone pose only the vertices those read.
@@ -917,14 +921,18 @@ class Fitter:
 
     def _lifted_feet(self, params: Params, seen: torch.Tensor) -> Params:
         """``params`` with each foot none of whose toes is ``seen`` ((B, 25) bool) and
-        whose toes sink more than SUNK_TOES into the scene turned to its neutral ankle,
-        toes at right angles to the shin, where that sinks them less. Unseen toes are the
-        pose prior's and the start's guess; a foot 5-7 cm deep in the floor is pulled out
-        by the scene stages' first steps turning and bending the whole body, and the
-        scene guard then undoes them, penetration and all (held-out seed 103's leg-up
-        sitter: 9-11 % of the body more than 1 cm inside the scan in four frames). Fits
-        from scratch only: a warm-started frame's feet are its neighbour's, which the
-        scene stages placed."""
+        whose toes sink more than SUNK_TOES into the scene turned toward its neutral
+        ankle (toes at right angles to the shin): by the least of LIFT_KEPT's turns that
+        brings them within SUNK_TOES, or else the one that sinks them least, where that
+        lifts them by LIFT_MIN. Unseen toes are the pose prior's and the start's guess; a
+        foot 5-7 cm deep in the floor is pulled out by the scene stages' first steps
+        turning and bending the whole body, and the scene guard then undoes them,
+        penetration and all (held-out seed 103's leg-up sitter: 9-11 % of the body more
+        than 1 cm inside the scan in four frames). A foot already near its neutral ankle
+        is left to the scene stages (held-out seed 104's reacher, its foot turned 2
+        degrees, ended 10 cm over the floor and was refitted from its other start, 71 ->
+        176 mm). Fits from scratch only: a warm-started frame's feet are its neighbour's,
+        which the scene stages placed."""
         unseen = ~seen[:, TOES].reshape(len(seen), 2, 2).any(2)  # (B, 2) right, left
         if not bool(unseen.any()):
             return params
@@ -939,14 +947,21 @@ class Fitter:
         which = unseen & (depth > SUNK_TOES)
         if not bool(which.any()):
             return params
-        flat = self.body.point_feet(params, which, plantarflexion=0.0)
-        lifted = which & (sunk(flat) < depth)
+        kept = torch.tensor(LIFT_KEPT)
+        tried = self.body.relax_feet(  # every share for every body, in one evaluation
+            {k: v.repeat(len(kept), *[1] * (v.dim() - 1)) for k, v in params.items()},
+            torch.where(which.repeat(len(kept), 1), kept.repeat_interleave(len(depth))[:, None],
+                        1.0))
+        depths = sunk(tried).view(len(kept), *depth.shape)  # (shares, B, 2)
+        first = (depths <= SUNK_TOES).float().argmax(0)  # the first share that holds
+        share = torch.where((depths <= SUNK_TOES).any(0), first, depths.argmin(0))
+        lifted = which & (depths.gather(0, share[None])[0] <= depth - LIFT_MIN)
         if not bool(lifted.any()):
             return params
         self.events.append("toes sunk in the scene: the " + " and ".join(
             f"{side} foot" for side, any_ in zip(("right", "left"), lifted.any(0)) if any_)
-            + " turned to its neutral ankle")
-        return self.body.point_feet(params, lifted, plantarflexion=0.0)
+            + " turned toward its neutral ankle")
+        return self.body.relax_feet(params, torch.where(lifted, kept[share], 1.0))
 
     def _depth_scale(self, params: Params, depth: list) -> torch.Tensor:
         """Per body, the scale about the camera centre that puts its camera-facing surface

@@ -399,13 +399,18 @@ class AnnyBody(BodyModel):
             variants[posture] = {**params, "body_pose": pose}
         return variants
 
-    def point_feet(self, params: Params, which: torch.Tensor,
-                   plantarflexion: float | None = None) -> Params:
+    def point_feet(self, params: Params, which: torch.Tensor) -> Params:
         pose = params["body_pose"].clone()
         for side, rows in zip(("R", "L"), which.T):
             bone = BODY_BONES.index(f"foot.{side}")
-            angle = self.limit_hi[bone, 0] if plantarflexion is None else plantarflexion
-            pose[rows, bone] = torch.stack([torch.as_tensor(angle), *pose.new_zeros(2)])
+            pose[rows, bone] = torch.stack([self.limit_hi[bone, 0], *pose.new_zeros(2)])
+        return {**params, "body_pose": pose}
+
+    def relax_feet(self, params: Params, keep: torch.Tensor) -> Params:
+        pose = params["body_pose"].clone()
+        for side, scale in zip(("R", "L"), keep.T):
+            bone = BODY_BONES.index(f"foot.{side}")
+            pose[:, bone] = pose[:, bone] * scale[:, None]
         return {**params, "body_pose": pose}
 
     def root_pivot(self, params: Params) -> torch.Tensor:

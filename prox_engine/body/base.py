@@ -157,12 +157,17 @@ class BodyModel(ABC, torch.nn.Module):
         model whose pose is a learned latent code."""
         return {}
 
-    def point_feet(self, params: Params, which: torch.Tensor,
-                   plantarflexion: float | None = None) -> Params:
+    def point_feet(self, params: Params, which: torch.Tensor) -> Params:
         """``params`` with the feet of ``which`` ((B, 2) bool, right then left) turned to
-        ``plantarflexion`` (rad; 0: the neutral ankle, toes at right angles to the shin;
-        None: the joint's limit, toes along the shin); a model whose pose is a learned
-        latent code keeps them as they are."""
+        full plantarflexion, toes along the shin; a model whose pose is a learned latent
+        code keeps them as they are."""
+        return params
+
+    def relax_feet(self, params: Params, keep: torch.Tensor) -> Params:
+        """``params`` with each foot's turn away from its neutral ankle (toes at right
+        angles to the shin) scaled by ``keep`` ((B, 2), right then left: 1 keeps it, 0
+        turns the foot to neutral); a model whose pose is a learned latent code keeps
+        them as they are."""
         return params
 
     def prox_result(self, params: Params, index: int) -> dict | None:
