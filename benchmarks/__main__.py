@@ -27,9 +27,8 @@ from .generate import KINDS, make_benchmark
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
            "prox-no-support", "prox-no-feet-carry", "prox-sunk-feet", "prox-no-visibility",
-           "prox-no-axes",
-           "prox-toes-counted",
-           "prox-unpointed-feet", "prox-toe-rays", "prox-one-start",
+           "prox-no-axes", "prox-toes-counted", "prox-unpointed-feet", "prox-toe-rays",
+           "prox-one-start",
            "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",
            "prox-thighs-by-ankles", "prox-start-feet", "prox-sizeless-start",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-hip-restarts",

@@ -60,7 +60,8 @@ class FitConfig:
     # with a foot in view on its lowest vertices alone (see scale_search.FEET_CARRY_LEG)
     scale_feet_carry: bool = False
     # A body fitted from scratch and placed, whose unseen toes it sinks into the scene, has
-    # those feet turned to their neutral ankle before the scene stages (fitting.SUNK_TOES)
+    # those feet turned toward their neutral ankle before the scene stages (see
+    # fitting.SUNK_TOES)
     lift_sunk_feet: bool = False
     # Sequence mode warm-starts each frame from its neighbour's fit; off, the frame keeps
     # that fit's shape, and its depth is the one its keypoint stage reaches from the

@@ -54,9 +54,9 @@ SCENE_GUARD_FLOOR = 1000.0
 
 # A foot whose toes the detector did not clearly see, and which the placed fit sinks more
 # than this (m) into the scene with its toes, is turned toward its neutral ankle before
-# the scene stages (FitConfig.lift_sunk_feet): by the first of these shares of its turn
-# kept that sinks its toes no deeper, or else by the one that sinks them least, where
-# that lifts them by LIFT_MIN (m) or more (less, the scene stages bend it as far).
+# the scene stages (FitConfig.lift_sunk_feet): keeping the first of these shares of its
+# turn that brings its toes within SUNK_TOES, or else the one that sinks them least,
+# where that lifts them by LIFT_MIN (m) or more (less, the scene stages bend it as far).
 SUNK_TOES = 0.02
 LIFT_KEPT = (2 / 3, 1 / 3, 0.0)
 LIFT_MIN = 0.01
@@ -948,10 +948,11 @@ class Fitter:
         if not bool(which.any()):
             return params
         kept = torch.tensor(LIFT_KEPT)
-        tried = self.body.relax_feet(  # every share for every body, in one evaluation
-            {k: v.repeat(len(kept), *[1] * (v.dim() - 1)) for k, v in params.items()},
-            torch.where(which.repeat(len(kept), 1), kept.repeat_interleave(len(depth))[:, None],
-                        1.0))
+        # every share for every body (share-major rows), posed in one evaluation
+        repeated = {k: v.repeat(len(kept), *[1] * (v.dim() - 1)) for k, v in params.items()}
+        shares = kept.repeat_interleave(len(depth))[:, None]
+        tried = self.body.relax_feet(repeated, torch.where(which.repeat(len(kept), 1),
+                                                           shares, 1.0))
         depths = sunk(tried).view(len(kept), *depth.shape)  # (shares, B, 2)
         first = (depths <= SUNK_TOES).float().argmax(0)  # the first share that holds
         share = torch.where((depths <= SUNK_TOES).any(0), first, depths.argmin(0))
