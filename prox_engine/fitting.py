@@ -18,8 +18,8 @@ from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
 from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES,
-                        LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, TOES, Keypoints,
-                        ankle_seen, cut_legs, nothing_below_knees, side_swap, thighs_hidden)
+                        LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
+                        cut_legs, nothing_below_knees, side_swap, thighs_hidden, toes_unseen)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, feet_carried,
@@ -193,7 +193,10 @@ class Fitter:
         self.penetration_tolerance: float | torch.Tensor = config.penetration_tolerance
         self.toes, self.scene_subset, self.penetration_vertices, self.contact_normals = (
             None, None, None, None)
-        self.toe_sides: torch.Tensor | None = None  # (2, V) right, then left
+        # The toes' vertices, posed alone (lift_sunk_feet), and which foot each is of:
+        # (2, toes) right, then left
+        self.toe_subset: VertexSubset | None = None
+        self.toe_sides: torch.Tensor | None = None
         # The whole mesh's normals, for the scale search (a kernel: 1.2 ms for two bodies
         # where geometry.vertex_normals took 3.1); a fit without a scene never reads them
         self.vertex_normals: VertexNormals | None = None
@@ -201,10 +204,12 @@ class Fitter:
             self.vertex_normals = VertexNormals(body.faces, torch.arange(body.num_vertices))
             with torch.no_grad():  # the standing mean body, which both sets are chosen on
                 rest = body(body.init_params(1))
-            self.toe_sides = toe_vertices(body.vertex_parts, rest.vertices[0],
-                                          rest.keypoints[0, ANKLES])
+            sides = toe_vertices(body.vertex_parts, rest.vertices[0],
+                                 rest.keypoints[0, ANKLES])
             if config.scale_free_toes:  # the vertices the scale search does not count
-                self.toes = self.toe_sides.any(0)
+                self.toes = sides.any(0)
+            self.toe_subset = body.vertex_subset(torch.nonzero(sides.any(0)).flatten())
+            self.toe_sides = sides[:, self.toe_subset.ids]
             self.scene_subset, self.penetration_vertices, self.contact_normals = (
                 self._scene_vertices(rest.vertices[0]))
             # How deep each vertex may enter the scan beyond penetration_tolerance: the
@@ -933,13 +938,13 @@ class Fitter:
         degrees, ended 10 cm over the floor and was refitted from its other start, 71 ->
         176 mm). Fits from scratch only: a warm-started frame's feet are its neighbour's,
         which the scene stages placed."""
-        unseen = ~seen[:, TOES].reshape(len(seen), 2, 2).any(2)  # (B, 2) right, left
+        unseen = toes_unseen(seen)  # (B, 2) right, left
         if not bool(unseen.any()):
             return params
 
         def sunk(p: Params) -> torch.Tensor:  # (B, 2) deepest toe vertex, per foot
             with torch.no_grad():
-                vertices = self.body(p).vertices
+                vertices = self.body(p, vertices=self.toe_subset, spheres=False).vertices
             return torch.stack([torch.relu(-self.scene.signed_distance(
                 vertices[:, toes])).amax(1) for toes in self.toe_sides], 1)
 

@@ -177,6 +177,12 @@ def ankle_seen(conf: torch.Tensor) -> torch.Tensor:
     return (conf[..., ANKLES] > 0).any(-1)
 
 
+def toes_unseen(seen: torch.Tensor) -> torch.Tensor:
+    """(..., 2) per foot of SHINS, whether neither of its toes is ``seen`` ((..., 25)
+    bool, e.g. confidences over SEEN); a seen heel does not count."""
+    return ~seen[..., TOES].unflatten(-1, (2, 2)).any(-1)
+
+
 def cut_legs(conf: torch.Tensor) -> torch.Tensor:
     """(..., 2) per leg of SHINS, whether the detector reported its knee and nothing below
     it (ankle, toes, heel), from confidences (..., K): a leg cut off by the image's edge

@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import torch
 
-from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, SEEN, TOES
+from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, SEEN, TOES, toes_unseen
 from .losses import gmof, nearest_contacts, part_vertices
 from .scene import Scene
 
@@ -130,15 +130,20 @@ def _elevations(keypoints: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor
     return slope(HIPS, KNEES), slope(KNEES, ANKLES)
 
 
+def _plumb_legs(keypoints: torch.Tensor, up: torch.Tensor, within: float) -> torch.Tensor:
+    """(B,) bool: every thigh and shin of the fitted BODY_25 ``keypoints`` (B, 25, 3)
+    within ``within`` (rad) of hanging plumb, ``up`` world up in their frame."""
+    return (torch.cat(_elevations(keypoints, up), 1) < -math.cos(within)).all(1)
+
+
 def standing_legs(keypoints: torch.Tensor, detected: torch.Tensor, up: torch.Tensor
                   ) -> torch.Tensor:
     """(B,) bool: every thigh and shin of the fitted BODY_25 ``keypoints`` (B, 25, 3)
     within STANDING_LEG of hanging plumb (``up`` world up in their frame), and no knee or
     ankle reported hidden (``detected`` (B, 25), the detector's confidences, at least
     HIDDEN)."""
-    thigh, shin = _elevations(keypoints, up)
     seen = (detected[:, [*KNEES, *ANKLES]] >= HIDDEN).all(1)
-    return seen & (torch.cat([thigh, shin], 1) < -math.cos(STANDING_LEG)).all(1)
+    return seen & _plumb_legs(keypoints, up, STANDING_LEG)
 
 
 def feet_carried(keypoints: torch.Tensor, detected: torch.Tensor, up: torch.Tensor
@@ -146,9 +151,8 @@ def feet_carried(keypoints: torch.Tensor, detected: torch.Tensor, up: torch.Tens
     """(B,) bool: every thigh and shin of the fitted BODY_25 ``keypoints`` (B, 25, 3)
     within FEET_CARRY_LEG of hanging plumb (``up`` world up in their frame), and an ankle
     or a toe clearly seen (``detected`` (B, 25), the detector's confidences, over SEEN)."""
-    thigh, shin = _elevations(keypoints, up)
-    plumb = (torch.cat([thigh, shin], 1) < -math.cos(FEET_CARRY_LEG)).all(1)
-    return plumb & (detected[:, [*ANKLES, *TOES]] > SEEN).any(1)
+    foot_seen = (detected[:, [*ANKLES, *TOES]] > SEEN).any(1)
+    return foot_seen & _plumb_legs(keypoints, up, FEET_CARRY_LEG)
 
 
 def standing_counts(standing: torch.Tensor, parts: torch.Tensor) -> torch.Tensor:
@@ -170,9 +174,7 @@ def unseen_feet_on_kneeling_legs(keypoints: torch.Tensor, seen: torch.Tensor,
     (``seen`` (B, 25); a seen heel does not turn the foot) and the leg kneeling (see
     :data:`FLAT_SHIN`) in the fitted BODY_25 ``keypoints`` (B, 25, 3), ``up`` world up in
     their frame."""
-    # per leg as keypoints.SHINS orders them; a kneeler's heel points up, in view
-    unseen = ~seen[:, TOES].reshape(len(seen), 2, 2).any(2)
-    return unseen & kneeling_legs(keypoints, up)
+    return toes_unseen(seen) & kneeling_legs(keypoints, up)  # a kneeler's heel is in view
 
 
 def kneelers_toes(keypoints: torch.Tensor, up: torch.Tensor) -> torch.Tensor:

@@ -1005,7 +1005,7 @@ def test_a_placed_fits_unseen_toes_sunk_in_the_floor_are_lifted(body):
 
     def toes_depth(params: dict[str, torch.Tensor]) -> float:
         with torch.no_grad():
-            vertices = body(params).vertices[0, fitter.toe_sides[1]]
+            vertices = body(params).vertices[0, fitter.toe_subset.ids[fitter.toe_sides[1]]]
         return float(-scene.signed_distance(vertices[None]).min())
 
     unseen = torch.ones(1, 25, dtype=torch.bool)
