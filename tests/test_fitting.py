@@ -941,9 +941,9 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
     """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees,
     ankles and feet unreported (behind furniture), fitted with its legs standing (the
     start's guess): in `prox` the fit is also tried with the legs of each start posture,
-    ranked as the starts are, and the kneeling legs win, every other joint where it was.
-    With a knee reported, or without the setting (`prox-no-hidden-legs`), the fit is
-    kept as it is."""
+    each refitted to the keypoints and ranked as the starts are, and the kneeling legs
+    win, every joint within 3 cm of the truth's. With a knee reported, or without the
+    setting (`prox-no-hidden-legs`), the fit is kept as it is."""
     from prox_engine.body.anny_body import BODY_BONES
     from prox_engine.fitting import _Rows
     from prox_engine.keypoints import FEET, KNEES
@@ -972,7 +972,7 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
 
     fitted, events = picked("prox", conf)
     assert events == ["hidden legs posed kneeling"]
-    assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.01
+    assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.03
     with torch.no_grad():
         held = body(standing, vertices=False).keypoints[0, :25]
     seen = conf.clone()
@@ -980,6 +980,47 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
     for config_name, c in (("prox", seen), ("prox-no-hidden-legs", conf)):
         fitted, events = picked(config_name, c)
         assert events == [] and torch.equal(fitted, held), config_name
+
+
+def test_hidden_legs_postures_are_ranked_refitted_not_as_set(body):
+    """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees,
+    ankles and feet reported faintly (under HIDDEN) where they are, fitted through the
+    last keypoint stage with its legs standing: the trunk and root bend to bring the
+    standing legs toward the faint points. Its kneeling copy keeps that trunk and pays
+    for it in the data term; refitted first (`prox`), kneeling wins, every joint within
+    8 cm of the truth's; ranked as set (`prox-unfitted-hidden-legs`), the standing fit
+    is kept, half a metre off."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import FEET, HIDDEN, KNEES
+
+    cam2world = tilted_camera()
+    kneeling = _posed_params(body, cam2world, "kneeling")
+    with torch.no_grad():
+        truth = body(kneeling, vertices=False).keypoints[0]
+    standing = {k: v.clone() for k, v in kneeling.items()}
+    for bone in ("upperleg01", "lowerleg01"):
+        for side in ("L", "R"):
+            standing["body_pose"][0, BODY_BONES.index(f"{bone}.{side}")] = 0.0
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, KNEES + FEET] = HIDDEN - 0.1
+
+    def picked(config_name: str) -> tuple[float, list[str]]:
+        config = load_config(config_name)
+        fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+        fitter.events = []
+        rows = _Rows({k: v.clone() for k, v in standing.items()}, CAMERA.project(truth)[None],
+                     conf, conf[:, :25].clone(), [None], [()])
+        fitter._refit_candidates(rows, config.stages[3], torch.tensor([0]))
+        rows = fitter._hidden_leg_postures(rows, config.stages[3])
+        with torch.no_grad():
+            fitted = body(rows.params, vertices=False).keypoints[0, :25]
+        return float((fitted - truth[:25]).norm(dim=1).max()), fitter.events
+
+    error, events = picked("prox")
+    assert events == ["hidden legs posed kneeling"] and error < 0.08
+    error, events = picked("prox-unfitted-hidden-legs")
+    assert events == [] and error > 0.4
 
 
 def test_a_placed_fits_unseen_toes_sunk_in_the_floor_are_lifted(body):
