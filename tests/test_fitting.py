@@ -937,18 +937,12 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     assert calls
 
 
-def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneeling(body):
-    """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees,
-    ankles and feet unreported (behind furniture), fitted with its legs standing (the
-    start's guess): in `prox` the fit is also tried with the legs of each start posture,
-    each refitted to the keypoints and ranked as the starts are, and the kneeling legs
-    win, every joint within 3 cm of the truth's. With a knee reported, or without the
-    setting (`prox-no-hidden-legs`), the fit is kept as it is."""
+def _kneeler_fitted_standing(body, cam2world: np.ndarray
+                             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """A mean body kneeling on the floor seen by ``cam2world``: its keypoints (K, 3) and
+    its parameters with the legs standing (the start's guess of hidden legs)."""
     from prox_engine.body.anny_body import BODY_BONES
-    from prox_engine.fitting import _Rows
-    from prox_engine.keypoints import FEET, KNEES
 
-    cam2world = tilted_camera()
     kneeling = _posed_params(body, cam2world, "kneeling")
     with torch.no_grad():
         truth = body(kneeling, vertices=False).keypoints[0]
@@ -956,21 +950,46 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
     for bone in ("upperleg01", "lowerleg01"):
         for side in ("L", "R"):
             standing["body_pose"][0, BODY_BONES.index(f"{bone}.{side}")] = 0.0
+    return truth, standing
+
+
+def _hidden_legs_picked(body, cam2world: np.ndarray, config_name: str,
+                        params: dict[str, torch.Tensor], truth: torch.Tensor,
+                        conf: torch.Tensor, refitted: bool = False
+                        ) -> tuple[torch.Tensor, list[str]]:
+    """The body joints (25, 3) that :meth:`Fitter._hidden_leg_postures` keeps for a fit
+    ``params`` (with ``refitted``, first fitted through the last keypoint stage) of the
+    keypoints ``truth`` projected, reported with ``conf`` (1, K), over a floor; and the
+    events."""
+    from prox_engine.fitting import _Rows
+
+    config = load_config(config_name)
+    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    fitter.events = []
+    rows = _Rows({k: v.clone() for k, v in params.items()}, CAMERA.project(truth)[None],
+                 conf, conf[:, :25].clone(), [None], [()])
+    if refitted:
+        fitter._refit_candidates(rows, config.stages[3], torch.tensor([0]))
+    if config.hidden_leg_postures:
+        rows = fitter._hidden_leg_postures(rows, config.stages[3])
+    with torch.no_grad():
+        return body(rows.params, vertices=False).keypoints[0, :25], fitter.events
+
+
+def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneeling(body):
+    """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees,
+    ankles and feet unreported (behind furniture), fitted with its legs standing (the
+    start's guess): in `prox` the fit is also tried with the legs of each start posture,
+    each refitted to the keypoints and ranked as the starts are, and the kneeling legs
+    win, every joint within 3 cm of the truth's. With a knee reported, or without the
+    setting (`prox-no-hidden-legs`), the fit is kept as it is."""
+    from prox_engine.keypoints import FEET, KNEES
+
+    cam2world = tilted_camera()
+    truth, standing = _kneeler_fitted_standing(body, cam2world)
     conf = torch.full((1, N_KEYPOINTS), 0.9)
     conf[:, KNEES + FEET] = 0.0
-
-    def picked(config_name: str, conf: torch.Tensor) -> tuple[torch.Tensor, list[str]]:
-        config = load_config(config_name)
-        fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
-        fitter.events = []
-        rows = _Rows({k: v.clone() for k, v in standing.items()}, CAMERA.project(truth)[None],
-                     conf, conf[:, :25].clone(), [None], [()])
-        if config.hidden_leg_postures:
-            rows = fitter._hidden_leg_postures(rows, config.stages[3])
-        with torch.no_grad():
-            return body(rows.params, vertices=False).keypoints[0, :25], fitter.events
-
-    fitted, events = picked("prox", conf)
+    fitted, events = _hidden_legs_picked(body, cam2world, "prox", standing, truth, conf)
     assert events == ["hidden legs posed kneeling"]
     assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.03
     with torch.no_grad():
@@ -978,7 +997,7 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
     seen = conf.clone()
     seen[:, KNEES[0]] = 0.9
     for config_name, c in (("prox", seen), ("prox-no-hidden-legs", conf)):
-        fitted, events = picked(config_name, c)
+        fitted, events = _hidden_legs_picked(body, cam2world, config_name, standing, truth, c)
         assert events == [] and torch.equal(fitted, held), config_name
 
 
@@ -990,37 +1009,18 @@ def test_hidden_legs_postures_are_ranked_refitted_not_as_set(body):
     for it in the data term; refitted first (`prox`), kneeling wins, every joint within
     8 cm of the truth's; ranked as set (`prox-unfitted-hidden-legs`), the standing fit
     is kept, half a metre off."""
-    from prox_engine.body.anny_body import BODY_BONES
-    from prox_engine.fitting import _Rows
     from prox_engine.keypoints import FEET, HIDDEN, KNEES
 
     cam2world = tilted_camera()
-    kneeling = _posed_params(body, cam2world, "kneeling")
-    with torch.no_grad():
-        truth = body(kneeling, vertices=False).keypoints[0]
-    standing = {k: v.clone() for k, v in kneeling.items()}
-    for bone in ("upperleg01", "lowerleg01"):
-        for side in ("L", "R"):
-            standing["body_pose"][0, BODY_BONES.index(f"{bone}.{side}")] = 0.0
+    truth, standing = _kneeler_fitted_standing(body, cam2world)
     conf = torch.full((1, N_KEYPOINTS), 0.9)
     conf[:, KNEES + FEET] = HIDDEN - 0.1
-
-    def picked(config_name: str) -> tuple[float, list[str]]:
-        config = load_config(config_name)
-        fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
-        fitter.events = []
-        rows = _Rows({k: v.clone() for k, v in standing.items()}, CAMERA.project(truth)[None],
-                     conf, conf[:, :25].clone(), [None], [()])
-        fitter._refit_candidates(rows, config.stages[3], torch.tensor([0]))
-        rows = fitter._hidden_leg_postures(rows, config.stages[3])
-        with torch.no_grad():
-            fitted = body(rows.params, vertices=False).keypoints[0, :25]
-        return float((fitted - truth[:25]).norm(dim=1).max()), fitter.events
-
-    error, events = picked("prox")
-    assert events == ["hidden legs posed kneeling"] and error < 0.08
-    error, events = picked("prox-unfitted-hidden-legs")
-    assert events == [] and error > 0.4
+    for config_name, kneels, error in (("prox", True, (0.0, 0.08)),
+                                       ("prox-unfitted-hidden-legs", False, (0.4, 9.0))):
+        fitted, events = _hidden_legs_picked(body, cam2world, config_name, standing, truth,
+                                             conf, refitted=True)
+        assert events == (["hidden legs posed kneeling"] if kneels else []), config_name
+        assert error[0] < float((fitted - truth[:25]).norm(dim=1).max()) < error[1]
 
 
 def test_a_placed_fits_unseen_toes_sunk_in_the_floor_are_lifted(body):
