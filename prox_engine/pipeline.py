@@ -169,7 +169,7 @@ RESTART_DATA = 0.9
 def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     """``frames`` fitted from scratch; with ``config.floating_restart``, each whose fit
     floats over every surface is fitted again from the start its fit did not go on from
-    (see :func:`_less_floating`, with RESTART_DATA): the start choice judges how each
+    (see :func:`_kept_less_floating`, with RESTART_DATA): the start choice judges how each
     start meets the scene after two stages, and where the stages after it lift the
     chosen body off every surface, the reason it was chosen over a start that fits the
     keypoints better is gone (seed 16's kneeler, crouching 8 cm over the floor, 441 ->
@@ -178,39 +178,54 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     guessed legs on a surface at whatever depth that takes (seed 8's sitter, cut off at
     the knees: refitted 26 % too far, 130 -> 772 mm). Then each whose fit takes the legs
     as swapped against the detector and ends far from its keypoints is checked
-    (:func:`_checked_swap`)."""
+    (:func:`_checked_swaps`). A batch's frames fitted again are fitted together, as
+    many batches as there are starts or labellings to fit them from."""
     results = fitter.fit(frames)
     if fitter.config.floating_restart and fitter.scene is not None:
-        results = [_less_floating(
-            fitter, result, lambda: fitter.fit([frame], start=0 if result.start else 1)[0],
-            RESTART_DATA, ("", "first", "from the other start", "refit"))
-            if result.start is not None and ankle_seen(frame.keypoints.data[:, 2]) else result
-            for frame, result in zip(frames, results)]
-    return [_checked_swap(fitter, frame, result) for frame, result in zip(frames, results)]
+        checks = {b: _floating_check(fitter, result) for b, (frame, result)
+                  in enumerate(zip(frames, results))
+                  if result.start is not None and ankle_seen(frame.keypoints.data[:, 2])}
+        floating = [b for b in checks if results[b].underside_gap > quality.FLOATING]
+        for b in checks.keys() - set(floating):
+            _charge(results[b], "floating_check", checks[b], 0)
+        for start in (0, 1):  # each frame refitted from the start it did not go on from
+            again = [b for b in floating if (results[b].start == 0) == (start == 1)]
+            refits = fitter.fit([frames[b] for b in again], start=start) if again else []
+            for b, other in zip(again, refits):
+                results[b] = _kept_less_floating(
+                    fitter, results[b], other, checks[b], RESTART_DATA,
+                    ("", "first", "from the other start", "refit"))
+    return _checked_swaps(fitter, frames, results)
 
 
-def _checked_swap(fitter: Fitter, frame: Frame, result: FitResult) -> FitResult:
-    """``result``, unless it takes the legs as swapped against the detector and ends over
-    ``config.swap_check_px`` from the keypoints as it labelled them: then the frame is
-    fitted again with the labels as detected, and the fit nearer its keypoints is kept.
-    The start choice compares labellings two stages in, by objective and scene cost; the
-    finished fits tell them apart better (seed 54's kneeler, legs taken as swapped: 11.4
-    px and 568 mm off, as detected 7.0 px and 65 mm)."""
+def _checked_swaps(fitter: Fitter, frames: list[Frame], results: list[FitResult]
+                   ) -> list[FitResult]:
+    """``results``, except each that takes the legs as swapped against the detector and
+    ends over ``config.swap_check_px`` from the keypoints as it labelled them: its frame
+    is fitted again with the labels as detected, and the fit nearer its keypoints is
+    kept. The start choice compares labellings two stages in, by objective and scene
+    cost; the finished fits tell them apart better (seed 54's kneeler, legs taken as
+    swapped: 11.4 px and 568 mm off, as detected 7.0 px and 65 mm)."""
     limit = fitter.config.swap_check_px
-    if limit <= 0 or "legs" not in result.swapped:
-        return result
-    error = _error_px(fitter, result, frame)
-    if error <= limit:
-        return result
+    if limit <= 0:
+        return results
+    errors = {b: _error_px(fitter, result, frame) for b, (frame, result)
+              in enumerate(zip(frames, results)) if "legs" in result.swapped}
+    again = [b for b, error in errors.items() if error > limit]
+    if not again:
+        return results
     as_detected = Fitter(fitter.body, fitter.camera, replace(fitter.config, swap_sides=False),
-                         fitter.scene, fitter.on_stage).fit([frame])[0]
-    other = _error_px(fitter, as_detected, frame)
-    kept, dropped = (as_detected, result) if other < error else (result, as_detected)
-    kept.events.append(f"legs fitted as swapped, {error:.1f} px off; fitted again as "
-                       f"detected, {other:.1f} px; kept the "
-                       + ("fit as detected" if kept is as_detected else "swapped fit"))
-    _discard(kept, dropped)
-    return kept
+                         fitter.scene, fitter.on_stage).fit([frames[b] for b in again])
+    results = list(results)
+    for b, other_fit in zip(again, as_detected):
+        error, other = errors[b], _error_px(fitter, other_fit, frames[b])
+        kept, dropped = (other_fit, results[b]) if other < error else (results[b], other_fit)
+        kept.events.append(f"legs fitted as swapped, {error:.1f} px off; fitted again as "
+                           f"detected, {other:.1f} px; kept the "
+                           + ("fit as detected" if kept is other_fit else "swapped fit"))
+        _discard(kept, dropped)
+        results[b] = kept
+    return results
 
 
 def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor: FitResult,
@@ -292,18 +307,32 @@ def _unless_floating(fitter: Fitter, frame: Frame, results: list[FitResult]
 def _less_floating(fitter: Fitter, result: FitResult, refit: Callable[[], FitResult],
                    data_share: float | None, words: tuple[str, str, str, str]
                    ) -> FitResult:
-    """``result``, unless it floats over every surface (quality.FLOATING): then the fit
-    ``refit()`` gives, if that floats less and (given ``data_share``) its data term is
-    under ``data_share`` times the first's. The fit kept carries an event in ``words``
-    (what floated, the first's name, the refit's, and the refit's name as kept) and the
-    dropped fit's cost; the floating checks are charged to it."""
-    t0 = time.perf_counter()
-    gap = result.underside_gap = quality.underside_gap(result.vertices, fitter.scene)
-    check = time.perf_counter() - t0
-    if gap <= quality.FLOATING:
+    """``result``, unless it floats over every surface (quality.FLOATING): then
+    :func:`_kept_less_floating` of it and the fit ``refit()`` gives."""
+    check = _floating_check(fitter, result)
+    if result.underside_gap <= quality.FLOATING:
         _charge(result, "floating_check", check, 0)
         return result
-    other = refit()
+    return _kept_less_floating(fitter, result, refit(), check, data_share, words)
+
+
+def _floating_check(fitter: Fitter, result: FitResult) -> float:
+    """Set ``result.underside_gap`` (its underside's gap to the nearest surface below);
+    returns the seconds that took."""
+    t0 = time.perf_counter()
+    result.underside_gap = quality.underside_gap(result.vertices, fitter.scene)
+    return time.perf_counter() - t0
+
+
+def _kept_less_floating(fitter: Fitter, result: FitResult, other: FitResult, check: float,
+                        data_share: float | None, words: tuple[str, str, str, str]
+                        ) -> FitResult:
+    """Of a floating ``result`` and a fit ``other`` of its frame made again, ``other`` if
+    it floats less and (given ``data_share``) its data term is under ``data_share`` times
+    the first's, else ``result``. The fit kept carries an event in ``words`` (what
+    floated, the first's name, the refit's, and the refit's name as kept), the dropped
+    fit's cost and the floating checks (``check`` seconds so far)."""
+    gap = result.underside_gap
     t0 = time.perf_counter()
     other_gap = other.underside_gap = quality.underside_gap(other.vertices, fitter.scene)
     check += time.perf_counter() - t0

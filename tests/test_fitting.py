@@ -516,11 +516,14 @@ def test_a_fit_can_go_on_from_either_start(body):
         assert near[taken] < near[1 - taken], (taken, near)
 
 
-def _fit_over_nothing(body, config: str, cut_at_knees: bool = False):
+def _fit_over_nothing(body, config: str, cut_at_knees: bool = False, frames: int = 1,
+                      calls: list[int] | None = None):
     """A standing person fitted from scratch (pipeline._fit_fresh, with ``config``) where
     the scan has nothing under them (its only surface a patch of floor 3 m away), so the
     fit floats whatever its start; ``cut_at_knees``: the detector sees nothing below the
-    knees (ankles, toes and heels unreported)."""
+    knees (ankles, toes and heels unreported). With ``frames``, as many frames of them
+    (each turned a little more) fitted as a batch, the first's fit returned, or with
+    ``calls``, every fit, and the frames of each call of ``Fitter.fit`` listed there."""
     from prox_engine.pipeline import _fit_fresh
 
     cam2world = tilted_camera()
@@ -529,10 +532,16 @@ def _fit_over_nothing(body, config: str, cut_at_knees: bool = False):
     scene = Scene(patch.vertices, patch.faces, cam2world,
                   compute_sdf(patch.vertices, patch.faces, dim=48, padding=0.5),
                   sample_spacing=0.1)
-    frame = frame_of(standing_person(body, cam2world)[1])
-    if cut_at_knees:
-        frame.keypoints.data[FEET, 2] = 0.0
-    return _fit_fresh(Fitter(body, CAMERA, load_config(config), scene), [frame])[0]
+    batch = [frame_of(standing_person(body, cam2world, yaw=0.1 * b)[1]) for b in range(frames)]
+    for frame in batch:
+        if cut_at_knees:
+            frame.keypoints.data[FEET, 2] = 0.0
+    fitter = Fitter(body, CAMERA, load_config(config), scene)
+    if calls is not None:
+        fit = fitter.fit
+        fitter.fit = lambda frames, **kw: calls.append(len(frames)) or fit(frames, **kw)
+    fits = _fit_fresh(fitter, batch)
+    return fits if calls is not None else fits[0]
 
 
 def test_a_floating_fit_is_fitted_again_from_its_other_start(body):
@@ -547,6 +556,22 @@ def test_a_floating_fit_is_fitted_again_from_its_other_start(body):
     assert kept.stage_evaluations["discarded_fit"] > 0
     assert "discarded_fit" not in once.stage_evaluations
     assert not any("other start" in e for e in once.events)
+
+
+def test_a_batchs_floating_fits_are_fitted_again_together(body):
+    """Two frames of a batch whose fits both float over every surface are fitted again
+    from their other start in one batched fit (they went on from the same start), and
+    each is kept or dropped as it is alone: the same events and, up to the rounding of
+    batched arithmetic, the same bodies."""
+    calls: list[int] = []
+    fits = _fit_over_nothing(body, "prox", frames=2, calls=calls)
+    alone = _fit_over_nothing(body, "prox")
+    assert calls == [2, 2]
+    assert fits[0].start == fits[1].start == alone.start
+    for fit in fits:
+        assert any("from the other start" in e for e in fit.events)
+        assert fit.stage_evaluations["discarded_fit"] > 0
+    assert float((fits[0].vertices - alone.vertices).norm(dim=1).max()) < 0.005
 
 
 def test_a_floating_fit_cut_off_at_the_knees_is_not_fitted_again(body):
