@@ -33,6 +33,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-thighs-by-ankles", "prox-start-feet", "prox-sizeless-start",
            "prox-no-arm-restarts", "prox-no-leg-restarts", "prox-no-hip-restarts",
            "prox-no-knee-restarts", "prox-no-hidden-legs", "prox-unfitted-hidden-legs",
+           "prox-no-hidden-shins",
            "prox-no-facing", "prox-no-upright", "prox-free-cut-shins", "prox-faint-legs-in-view",
            "prox-scene-translates", "prox-no-scene-guard",
            "prox-no-floating-restart", "prox-unchecked-swaps", "prox-no-give",

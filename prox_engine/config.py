@@ -181,6 +181,9 @@ class FitConfig:
     hidden_leg_postures: bool = False
     # ... each first refitted through the last keypoint stage (Fitter._refit_candidates).
     hidden_leg_refit: bool = False
+    # ... and, where the knees are seen and nothing below them, the shins alone posed so
+    # (Fitter._hidden_leg_postures).
+    hidden_shin_postures: bool = False
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the
     # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose

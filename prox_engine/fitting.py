@@ -616,26 +616,36 @@ class Fitter:
         and the scale search then places the body around (development seed 315's
         kneeler behind a low table, its knees fitted 55-61 cm off the floor: 264 -> 75 mm
         posed kneeling). With ``hidden_leg_refit``, each is first refitted through
-        ``stage`` (:meth:`_refit_candidates`)."""
-        hidden = (rows.detected[:, [*KNEES, *ANKLES]] < HIDDEN).all(1)
-        if not bool(hidden.any()):  # most frames: no variant built, no body posed
-            return rows
-        postures = self.body.leg_postures(rows.params)
-        if not postures:
+        ``stage`` (:meth:`_refit_candidates`). With ``hidden_shin_postures``, so are the
+        frames whose knees the detector reports at HIDDEN or more and nothing below them
+        (no ankle, toe or heel at HIDDEN), their fitted ankles in the image, with the
+        shins alone posed, refitted without the plumb-shin prior (on for such legs, it
+        would draw them back down): a kneeler's shins flat behind a low table and a
+        squatter's upright project alike (seed 102's squatter)."""
+        detected = rows.detected
+        legs = (detected[:, [*KNEES, *ANKLES]] < HIDDEN).all(1)
+        shins = ((detected[:, KNEES] >= HIDDEN).all(1) & (detected[:, FEET] < HIDDEN).all(1)
+                 & self.config.hidden_shin_postures)
+        if not bool((legs | shins).any()):  # most frames: no variant built, no body posed
             return rows
         with torch.no_grad():
-            knees = self.body(rows.params, vertices=False).keypoints[:, KNEES]
-        hidden &= self.camera.in_image(self.camera.project(knees)).all(1)
-        if not bool(hidden.any()):
+            joints = self.body(rows.params, vertices=False).keypoints
+        legs &= self.camera.in_image(self.camera.project(joints[:, KNEES])).all(1)
+        shins &= self.camera.in_image(self.camera.project(joints[:, ANKLES])).all(1)
+        hidden = legs | shins
+        postures = self.body.leg_postures(rows.params, thighs_kept=shins)
+        if not bool(hidden.any()) or not postures:
             return rows
         names = ["fitted", *postures]
         tried = torch.stack([torch.ones_like(hidden), *[hidden] * len(postures)], 1)
         wide = rows.widened(list(postures.values())).taken(
             tried.flatten().nonzero().flatten().tolist())
         counts = tried.sum(1).tolist()
-        if self.config.hidden_leg_refit:
-            self._refit_candidates(wide, stage, torch.repeat_interleave(
-                hidden, torch.tensor(counts)).nonzero().flatten())
+        if self.config.hidden_leg_refit:  # hidden shins' postures without the plumb prior
+            for rows_of, plumb in ((legs, True), (shins, False)):
+                if bool(rows_of.any()):
+                    self._refit_candidates(wide, stage, torch.repeat_interleave(
+                        rows_of, torch.tensor(counts)).nonzero().flatten(), plumb)
         with torch.no_grad():
             data = self._data_term(stage, self.body(wide.params, vertices=False),
                                    wide.target, wide.conf)
@@ -643,13 +653,16 @@ class Fitter:
                                by_scene=True, priors=False)
         for frame, (row, group) in enumerate(zip(best, lbfgs.sized_groups(counts))):
             if row != group.start:
-                self.events.append(f"hidden legs posed {names[row - group.start]}" + (
+                part = "shins" if shins[frame] else "legs"
+                self.events.append(f"hidden {part} posed {names[row - group.start]}" + (
                     f" (frame {frame} of the batch)" if len(counts) > 1 else ""))
         return wide.taken(best)
 
-    def _refit_candidates(self, rows: _Rows, stage: Stage, which: torch.Tensor) -> None:
+    def _refit_candidates(self, rows: _Rows, stage: Stage, which: torch.Tensor,
+                          plumb: bool = True) -> None:
         """The rows ``which`` (indices) of ``rows`` fitted through ``stage`` (root and
-        body pose free, each row alone), in place: a posture set by hand is ranked at its
+        body pose free, each row alone; without ``plumb``, no shin drawn toward hanging),
+        in place: a posture set by hand is ranked at its
         own fit of the keypoints, not at the pose fitted for another (held-out seed 103's
         kneeler behind a low table: its kneeling legs, set, paid 1016 in data against the
         fitted legs' 652, the faint knees and ankles and the trunk fitted around the
@@ -657,7 +670,7 @@ class Fitter:
         picked = rows.taken(which.tolist())
         free = ["transl", "global_orient", *self.body.pose_group()]
         self._run_stage(stage, picked.params, free, picked.target, picked.conf, picked.depth,
-                        None, lbfgs.row_groups(len(which), len(which)))
+                        None, lbfgs.row_groups(len(which), len(which)), plumb)
         for name, value in picked.params.items():
             rows.params[name] = rows.params[name].index_copy(0, which, value)
 
@@ -719,11 +732,12 @@ class Fitter:
                                             self._keypoint_weights(stage, conf),
                                             self.config.data_rho)
 
-    def _held(self, stage: Stage, params: Params, conf: torch.Tensor, free: Sequence[str]
-              ) -> _Held:
-        """What stays put while a stage runs (:class:`_Held`)."""
+    def _held(self, stage: Stage, params: Params, conf: torch.Tensor, free: Sequence[str],
+              plumb: bool = True) -> _Held:
+        """What stays put while a stage runs (:class:`_Held`); without ``plumb``, no shin
+        is drawn toward hanging."""
         w, cfg, body = stage.weights, self.config, self.body
-        legs = cut_legs(conf)
+        legs = cut_legs(conf) & plumb
         if cfg.plumb_cut_frames_only:
             legs = legs & nothing_below_knees(conf)[..., None]
         priors = {"pose_prior": (body.pose_prior, body.pose_group()),
@@ -817,13 +831,13 @@ class Fitter:
 
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
                    conf: torch.Tensor, depth: list, previous: torch.Tensor | None,
-                   groups: list[slice]) -> dict[str, torch.Tensor]:
+                   groups: list[slice], plumb: bool = True) -> dict[str, torch.Tensor]:
         """L-BFGS calls on the ``free`` parameters until each frame's loss (its ``groups``
         of rows) settles; returns the terms at the accepted points (not at the line
-        search's last probes)."""
+        search's last probes). Without ``plumb``, no shin is drawn toward hanging."""
         mesh = self._mesh_read(stage)
         spheres = stage.weights.get("self_penetration", 0) > 0
-        held = self._held(stage, params, conf, free)
+        held = self._held(stage, params, conf, free, plumb)
         terms_of = self._terms(stage, params, target, conf, depth, previous, free, held)
 
         def terms() -> dict[str, torch.Tensor]:

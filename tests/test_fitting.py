@@ -1048,6 +1048,36 @@ def test_hidden_legs_postures_are_ranked_refitted_not_as_set(body):
         assert error[0] < float((fitted - truth[:25]).norm(dim=1).max()) < error[1]
 
 
+def test_hidden_shins_are_tried_in_each_start_posture_the_thighs_kept(body):
+    """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees
+    reported and nothing below them (feet behind a low table), fitted with its shins
+    hanging straight down from the kneeling thighs, through the floor: in `prox` the
+    shins alone are also tried in each start posture, refitted without the plumb-shin
+    prior (which would draw them back down) and ranked as starts are, and the kneeling
+    shins win, every joint within 3 cm of the truth's; without the setting
+    (`prox-no-hidden-shins`), or with an ankle reported, the fit is kept."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.keypoints import ANKLES, FEET
+
+    cam2world = tilted_camera()
+    truth, _ = _kneeler_fitted_standing(body, cam2world)
+    hanging = _posed_params(body, cam2world, "kneeling")
+    for side in ("L", "R"):
+        hanging["body_pose"][0, BODY_BONES.index(f"lowerleg01.{side}")] = 0.0
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, FEET] = 0.0
+    fitted, events = _hidden_legs_picked(body, cam2world, "prox", hanging, truth, conf)
+    assert events == ["hidden shins posed kneeling"]
+    assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.03
+    with torch.no_grad():
+        held = body(hanging, vertices=False).keypoints[0, :25]
+    seen = conf.clone()
+    seen[:, ANKLES[0]] = 0.9
+    for config_name, c in (("prox-no-hidden-shins", conf), ("prox", seen)):
+        fitted, events = _hidden_legs_picked(body, cam2world, config_name, hanging, truth, c)
+        assert events == [] and torch.equal(fitted, held), config_name
+
+
 def test_a_placed_fits_unseen_toes_sunk_in_the_floor_are_lifted(body):
     """A body standing on the floor under a tilted, rolled, off-centre camera, its left
     foot pointed down (toes 8 cm through the floor) and its toes unseen: before the scene

@@ -388,14 +388,19 @@ class AnnyBody(BodyModel):
             variants.append({**params, "body_pose": pose})
         return variants
 
-    def leg_postures(self, params: Params) -> dict[str, Params]:
+    def leg_postures(self, params: Params, thighs_kept: torch.Tensor | None = None
+                     ) -> dict[str, Params]:
         variants = {}
         for posture in _LEG_POSTURES:
             legs = _legs(0.0, 0.0)
             legs.update({bone: v for bone, v in _POSTURES[posture].items() if bone in legs})
             pose = params["body_pose"].clone()
             for bone, value in legs.items():
-                pose[:, BODY_BONES.index(bone)] = torch.tensor(value)
+                index = BODY_BONES.index(bone)
+                posed = torch.tensor(value).expand_as(pose[:, index])
+                if thighs_kept is not None and bone.startswith("upperleg"):
+                    posed = torch.where(thighs_kept[:, None], pose[:, index], posed)
+                pose[:, index] = posed
             variants[posture] = {**params, "body_pose": pose}
         return variants
 

@@ -151,9 +151,11 @@ class BodyModel(ABC, torch.nn.Module):
         forward; none for a model whose pose is a learned latent code."""
         return []
 
-    def leg_postures(self, params: Params) -> dict[str, Params]:
+    def leg_postures(self, params: Params, thighs_kept: torch.Tensor | None = None
+                     ) -> dict[str, Params]:
         """Copies of ``params`` with both legs posed as each start posture (standing,
-        sitting, kneeling, crouching) has them, the rest kept, by posture; none for a
+        sitting, kneeling, crouching) has them, the rest kept, by posture; in the rows
+        ``thighs_kept`` ((B,) bool) the shins alone, the thighs as fitted. None for a
         model whose pose is a learned latent code."""
         return {}
 
