@@ -662,11 +662,11 @@ class Fitter:
                           plumb: bool = True) -> None:
         """The rows ``which`` (indices) of ``rows`` fitted through ``stage`` (root and
         body pose free, each row alone; without ``plumb``, no shin drawn toward hanging),
-        in place: a posture set by hand is ranked at its
-        own fit of the keypoints, not at the pose fitted for another (held-out seed 103's
-        kneeler behind a low table: its kneeling legs, set, paid 1016 in data against the
-        fitted legs' 652, the faint knees and ankles and the trunk fitted around the
-        other legs; refitted, 577 against 520, and kneeling won: 452 -> 155 mm)."""
+        in place: a posture set by hand is ranked at its own fit of the keypoints, not at
+        the pose fitted for another (held-out seed 103's kneeler behind a low table: its
+        kneeling legs, set, paid 1016 in data against the fitted legs' 652, the faint
+        knees and ankles and the trunk fitted around the other legs; refitted, 577
+        against 520, and kneeling won: 452 -> 155 mm)."""
         picked = rows.taken(which.tolist())
         free = ["transl", "global_orient", *self.body.pose_group()]
         self._run_stage(stage, picked.params, free, picked.target, picked.conf, picked.depth,
