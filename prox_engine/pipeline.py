@@ -189,7 +189,7 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
         for b in checks.keys() - set(floating):
             _charge(results[b], "floating_check", checks[b], 0)
         for start in (0, 1):  # each frame refitted from the start it did not go on from
-            again = [b for b in floating if (results[b].start == 0) == (start == 1)]
+            again = [b for b in floating if results[b].start != start]
             refits = fitter.fit([frames[b] for b in again], start=start) if again else []
             for b, other in zip(again, refits):
                 results[b] = _kept_less_floating(

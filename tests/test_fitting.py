@@ -1001,6 +1001,24 @@ def _hidden_legs_picked(body, cam2world: np.ndarray, config_name: str,
         return body(rows.params, vertices=False).keypoints[0, :25], fitter.events
 
 
+def _posed_kneeling_or_kept(body, cam2world: np.ndarray, params: dict[str, torch.Tensor],
+                            truth: torch.Tensor, conf: torch.Tensor, part: str,
+                            reported: int, ablation: str) -> None:
+    """Check that `prox` poses the hidden ``part`` (legs or shins) of the fit ``params``
+    kneeling, every joint within 3 cm of the kneeling ``truth``'s, and that the fit is
+    kept as it is with the joint ``reported`` reported, or with the ``ablation``."""
+    fitted, events = _hidden_legs_picked(body, cam2world, "prox", params, truth, conf)
+    assert events == [f"hidden {part} posed kneeling"]
+    assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.03
+    with torch.no_grad():
+        held = body(params, vertices=False).keypoints[0, :25]
+    seen = conf.clone()
+    seen[:, reported] = 0.9
+    for config_name, c in (("prox", seen), (ablation, conf)):
+        fitted, events = _hidden_legs_picked(body, cam2world, config_name, params, truth, c)
+        assert events == [] and torch.equal(fitted, held), config_name
+
+
 def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneeling(body):
     """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees,
     ankles and feet unreported (behind furniture), fitted with its legs standing (the
@@ -1014,16 +1032,8 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
     truth, standing = _kneeler_fitted_standing(body, cam2world)
     conf = torch.full((1, N_KEYPOINTS), 0.9)
     conf[:, KNEES + FEET] = 0.0
-    fitted, events = _hidden_legs_picked(body, cam2world, "prox", standing, truth, conf)
-    assert events == ["hidden legs posed kneeling"]
-    assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.03
-    with torch.no_grad():
-        held = body(standing, vertices=False).keypoints[0, :25]
-    seen = conf.clone()
-    seen[:, KNEES[0]] = 0.9
-    for config_name, c in (("prox", seen), ("prox-no-hidden-legs", conf)):
-        fitted, events = _hidden_legs_picked(body, cam2world, config_name, standing, truth, c)
-        assert events == [] and torch.equal(fitted, held), config_name
+    _posed_kneeling_or_kept(body, cam2world, standing, truth, conf, "legs", KNEES[0],
+                            "prox-no-hidden-legs")
 
 
 def test_hidden_legs_postures_are_ranked_refitted_not_as_set(body):
@@ -1066,16 +1076,8 @@ def test_hidden_shins_are_tried_in_each_start_posture_the_thighs_kept(body):
         hanging["body_pose"][0, BODY_BONES.index(f"lowerleg01.{side}")] = 0.0
     conf = torch.full((1, N_KEYPOINTS), 0.9)
     conf[:, FEET] = 0.0
-    fitted, events = _hidden_legs_picked(body, cam2world, "prox", hanging, truth, conf)
-    assert events == ["hidden shins posed kneeling"]
-    assert float((fitted - truth[:25]).norm(dim=1).max()) < 0.03
-    with torch.no_grad():
-        held = body(hanging, vertices=False).keypoints[0, :25]
-    seen = conf.clone()
-    seen[:, ANKLES[0]] = 0.9
-    for config_name, c in (("prox-no-hidden-shins", conf), ("prox", seen)):
-        fitted, events = _hidden_legs_picked(body, cam2world, config_name, hanging, truth, c)
-        assert events == [] and torch.equal(fitted, held), config_name
+    _posed_kneeling_or_kept(body, cam2world, hanging, truth, conf, "shins", ANKLES[0],
+                            "prox-no-hidden-shins")
 
 
 def test_a_placed_fits_unseen_toes_sunk_in_the_floor_are_lifted(body):
