@@ -225,9 +225,10 @@ class Fitter:
                 self.contact_sink = sink[self.scene_subset.ids[self.contact_normals.ids]]
         self.events: list[str] = []  # of the current fit (see FitResult.events)
         self._size_unit: torch.Tensor | None = None  # of the current fit (see _sizes)
-        # The frames last initialised: their keypoints, starts, labellings and events.
-        self._started: tuple[list[np.ndarray], Params, list[tuple[str, ...]], list[str]] = (
-            [], {}, [], [])
+        # The frames last initialised: their keypoints, which were labelled as detected,
+        # starts, labellings and events.
+        self._started: tuple[list[np.ndarray], list[bool], Params, list[tuple[str, ...]],
+                             list[str]] = ([], [], {}, [], [])
         self.evaluations = 0  # body rows evaluated in the current fit
 
     def _scene_vertices(self, rest: torch.Tensor) -> tuple[
@@ -259,15 +260,21 @@ class Fitter:
     # ------------------------------------------------------------------ public API
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
             previous_keypoints: torch.Tensor | None = None,
-            start: int | None = None, sized_as: Params | None = None) -> list[FitResult]:
-        """Fit a batch of frames: from scratch with every stage (given ``start``, from
-        that of each frame's distinct starts alone, best first), or (sequence mode) from
-        ``warm_start`` with the configuration's sequence stages and the temporal term,
-        the scale search's size prior centred on the size of the body ``sized_as`` (one
-        row; without it, on the prior-mean body's: see :meth:`_sizes`)."""
+            start: int | Sequence[int | None] | None = None, sized_as: Params | None = None,
+            as_detected: Sequence[bool] | None = None) -> list[FitResult]:
+        """Fit a batch of frames: from scratch with every stage (given ``start``, one for
+        all frames or one per frame, from that of each frame's distinct starts alone, best
+        first; None: the better after the start stages; in the frames ``as_detected``, the
+        keypoints labelled as the detector has them, whatever ``config.swap_sides``), or
+        (sequence mode) from ``warm_start`` with the configuration's sequence stages and
+        the temporal term, the scale search's size prior centred on the size of the body
+        ``sized_as`` (one row; without it, on the prior-mean body's: see
+        :meth:`_sizes`)."""
         self._size_unit = None if sized_as is None else self.body.relative_size(sized_as)
+        starts = list(start) if isinstance(start, Sequence) else [start] * len(frames)
+        fixed = [False] * len(frames) if as_detected is None else list(as_detected)
         with self._counting():
-            return self._fit(frames, warm_start, previous_keypoints, start)
+            return self._fit(frames, warm_start, previous_keypoints, starts, fixed)
 
     def start_labelling(self, frame: Frame) -> tuple[str, ...]:
         """The parts whose left and right the best start of ``frame`` exchanges: the start
@@ -293,8 +300,8 @@ class Fitter:
         self.evaluations += rows
 
     def _fit(self, frames: list[Frame], warm_start: Params | None,
-             previous_keypoints: torch.Tensor | None, start: int | None
-             ) -> list[FitResult]:
+             previous_keypoints: torch.Tensor | None, start: list[int | None],
+             as_detected: list[bool]) -> list[FitResult]:
         began = time.perf_counter()
         self.events = []
         self.evaluations = 0
@@ -309,7 +316,7 @@ class Fitter:
         stage_seconds: dict[str, float] = {}
         if warm_start is None:
             self._announce("initialise")
-            params, labels = self.initialise(frames)
+            params, labels = self.initialise(frames, as_detected)
             stage_seconds["initialise"] = time.perf_counter() - began
             stage_evaluations["initialise"] = self.evaluations
             stages = self.config.stages
@@ -326,21 +333,23 @@ class Fitter:
         # configured).
         keep = len(labels) // len(frames)
         starts: list[int | None] = [None] * len(frames)
+        counts = [keep] * len(frames)  # rows per frame, from here on
         if keep > 1:
             distinct = [not all(torch.equal(v[b * keep], v[b * keep + 1])
                                 for v in params.values()) for b in range(len(frames))]
-            starts = [0 if d else None for d in distinct]
-            if start is not None:
-                taken = [b * keep + start for b in range(len(frames))]
-                params = {k: v[taken] for k, v in params.items()}
-                labels = [labels[r] for r in taken]
-                starts, keep = [start if d else None for d in distinct], 1
+            starts = [(0 if s is None else s) if d else None for d, s in zip(distinct, start)]
+            counts = [keep if s is None else 1 for s in start]
+            taken = [b * keep + r for b, s in enumerate(start)
+                     for r in (range(keep) if s is None else [s])]
+            params = {k: v[taken] for k, v in params.items()}
+            labels = [labels[r] for r in taken]
         choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
                          arms=self.config.start_choice_arms, feet_left_out=feet_left_out)
-        rows = _Rows(params, target.repeat_interleave(keep, 0), conf.repeat_interleave(keep, 0),
-                     detected.repeat_interleave(keep, 0),
-                     [f.depth_points for f in frames for _ in range(keep)], labels)
-        counts = [keep] * len(frames)  # rows per frame, from here on
+        rows_of = torch.tensor(counts)
+        rows = _Rows(params, target.repeat_interleave(rows_of, 0),
+                     conf.repeat_interleave(rows_of, 0), detected.repeat_interleave(rows_of, 0),
+                     [f.depth_points for f, n in zip(frames, counts) for _ in range(n)], labels)
+        chosen = [s is None for s in start]  # the frames whose start the choice picks
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
             rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]
@@ -388,7 +397,8 @@ class Fitter:
             if max(counts) > 1 and index + 1 == choice.after:
                 best = self._choose(choice, stage, rows, final, counts)
                 if index + 1 == self.config.start_stages and warm_start is None:
-                    starts = [None if s is None else r % keep for s, r in zip(starts, best)]
+                    starts = [r - group.start if s is not None and c else s for s, r, group, c
+                              in zip(starts, best, lbfgs.sized_groups(counts), chosen)]
                 rows, final = rows.taken(best), {k: v[best] for k, v in final.items()}
                 counts = [1] * len(frames)
             if (warm_start is None and self.config.arm_restarts
@@ -1062,32 +1072,41 @@ class Fitter:
             self.events.append(f"{step}: non-finite values, last step undone")
 
     # ------------------------------------------------------------------ initialisation
-    def initialise(self, frames: list[Frame]) -> tuple[Params, list[tuple[str, ...]]]:
+    def initialise(self, frames: list[Frame], as_detected: list[bool] | None = None
+                   ) -> tuple[Params, list[tuple[str, ...]]]:
         """The starting body of each frame (:func:`initialisation.best_start`), upright
         with respect to the scene's world up (without a scene, the camera's -y), from the
         detector's confidences (neck and hips included, unlike the data term); and per
         frame the parts whose left and right the detector most likely exchanged (with
-        ``config.swap_sides``). The same frames as last time get the same answer without
-        the search: sequence mode's anchor search, then its fit, and a fit from the other
-        start ask for a frame's starts twice running."""
-        seen, params, labels, events = self._started
+        ``config.swap_sides``, except in the frames ``as_detected``). The same frames as
+        last time get the same answer without the search: sequence mode's anchor search,
+        then its fit, and a fit from the other start ask for a frame's starts twice
+        running."""
+        as_detected = as_detected or [False] * len(frames)
+        seen, fixed, params, labels, events = self._started
         keypoints = [f.keypoints.data for f in frames]
-        if len(seen) == len(keypoints) and all(map(np.array_equal, seen, keypoints)):
+        if (len(seen) == len(keypoints) and fixed == as_detected
+                and all(map(np.array_equal, seen, keypoints))):
             self.events += events
             return {k: v.clone() for k, v in params.items()}, list(labels)
-        cfg = self.config
-        target, conf = self._targets(frames)
-        labellings = LABELLINGS if cfg.swap_sides else LABELLINGS[:1]
         before = len(self.events)
-        params, chosen = best_start(self.body, self.camera, target, conf, self.up,
-                                    cfg.data_rho, cfg.init_depth_weight,
-                                    [side_swap(label) for label in labellings],
-                                    events=self.events, keep=cfg.start_candidates,
-                                    facing_cost=cfg.facing_cost,
-                                    guessed_legs=self._guessed_legs(conf))
-        labels = [labellings[int(c)] for c in chosen]
-        self._started = ([k.copy() for k in keypoints], {k: v.clone() for k, v in params.items()},
-                         labels, self.events[before:])
+        target, conf = self._targets(frames)
+        kinds = [as_detected[b] or not self.config.swap_sides for b in range(len(frames))]
+        found: dict[bool, tuple[Params, list[tuple[str, ...]]]] = {}
+        for single in sorted(set(kinds)):  # frames searched under every labelling first
+            which = [b for b, kind in enumerate(kinds) if kind == single]
+            labellings = LABELLINGS[:1] if single else LABELLINGS
+            params, chosen = best_start(
+                self.body, self.camera, target[which], conf[which], self.up,
+                self.config.data_rho, self.config.init_depth_weight,
+                [side_swap(label) for label in labellings], events=self.events,
+                keep=self.config.start_candidates, facing_cost=self.config.facing_cost,
+                guessed_legs=self._guessed_legs(conf[which]))
+            found[single] = (params, [labellings[int(c)] for c in chosen])
+        params, labels = _in_frame_order(found, kinds, self.config.start_candidates)
+        self._started = ([k.copy() for k in keypoints], list(as_detected),
+                         {k: v.clone() for k, v in params.items()}, labels,
+                         self.events[before:])
         return params, list(labels)
 
     def _guessed_legs(self, conf: torch.Tensor) -> torch.Tensor | None:
@@ -1116,3 +1135,19 @@ class Fitter:
                 squared, self.config.data_rho)).sum(1))
         best = torch.stack(costs).argmin(0)
         return [labellings[int(b)] for b in best]
+
+
+def _in_frame_order(found: dict[bool, tuple[Params, list[tuple[str, ...]]]],
+                    kinds: list[bool], keep: int) -> tuple[Params, list[tuple[str, ...]]]:
+    """The starts and labellings searched apart for the two kinds of frame (``found``:
+    kind -> its frames' ``keep`` rows each, frame-major) put back in frame order
+    (``kinds``: each frame's)."""
+    if len(found) == 1:
+        return next(iter(found.values()))
+    rows, taken = {kind: 0 for kind in found}, []
+    for kind in kinds:  # (kind, row within the kind's search) of every row in frame order
+        taken += [(kind, rows[kind] + r) for r in range(keep)]
+        rows[kind] += keep
+    params = {name: torch.stack([found[kind][0][name][r] for kind, r in taken])
+              for name in found[kinds[0]][0]}
+    return params, [found[kind][1][r] for kind, r in taken]

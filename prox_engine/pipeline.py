@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -176,56 +176,67 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     144 mm). Not where the detector saw no ankle: the underside is then the legs'
     guessed posture, its gap no evidence against the fit, and the refit rests its own
     guessed legs on a surface at whatever depth that takes (seed 8's sitter, cut off at
-    the knees: refitted 26 % too far, 130 -> 772 mm). Then each whose fit takes the legs
-    as swapped against the detector and ends far from its keypoints is checked
-    (:func:`_checked_swaps`). A batch's frames fitted again are fitted together, as
-    many batches as there are starts or labellings to fit them from."""
-    results = fitter.fit(frames)
+    the knees: refitted 26 % too far, 130 -> 772 mm). Each other frame whose fit takes
+    the legs as swapped against the detector and ends far from its keypoints is fitted
+    again as detected (:func:`_swapped_far`); so is a floating frame's fit kept after
+    its refit. A batch's frames fitted again are fitted together, whatever they are
+    fitted again for: one fit, and one more for the kept refits that need checking."""
+    results = list(fitter.fit(frames))
+    floating: dict[int, float] = {}  # frame -> seconds its floating check took
     if fitter.config.floating_restart and fitter.scene is not None:
-        checks = {b: _floating_check(fitter, result) for b, (frame, result)
-                  in enumerate(zip(frames, results))
-                  if result.start is not None and ankle_seen(frame.keypoints.data[:, 2])}
-        floating = [b for b in checks if results[b].underside_gap > quality.FLOATING]
-        for b in checks.keys() - set(floating):
-            _charge(results[b], "floating_check", checks[b], 0)
-        for start in (0, 1):  # each frame refitted from the start it did not go on from
-            again = [b for b in floating if results[b].start != start]
-            refits = fitter.fit([frames[b] for b in again], start=start) if again else []
-            for b, other in zip(again, refits):
-                results[b] = _kept_less_floating(
-                    fitter, results[b], other, checks[b], RESTART_DATA,
-                    ("", "first", "from the other start", "refit"))
-    return _checked_swaps(fitter, frames, results)
-
-
-def _checked_swaps(fitter: Fitter, frames: list[Frame], results: list[FitResult]
-                   ) -> list[FitResult]:
-    """``results``, except each that takes the legs as swapped against the detector and
-    ends over ``config.swap_check_px`` from the keypoints as it labelled them: its frame
-    is fitted again with the labels as detected, and the fit nearer its keypoints is
-    kept. The start choice compares labellings two stages in, by objective and scene
-    cost; the finished fits tell them apart better (seed 54's kneeler, legs taken as
-    swapped: 11.4 px and 568 mm off, as detected 7.0 px and 65 mm)."""
-    limit = fitter.config.swap_check_px
-    if limit <= 0:
-        return results
-    errors = {b: _error_px(fitter, result, frame) for b, (frame, result)
-              in enumerate(zip(frames, results)) if "legs" in result.swapped}
-    again = [b for b, error in errors.items() if error > limit]
+        for b, (frame, result) in enumerate(zip(frames, results)):
+            if result.start is not None and ankle_seen(frame.keypoints.data[:, 2]):
+                check = _floating_check(fitter, result)
+                if result.underside_gap > quality.FLOATING:
+                    floating[b] = check
+                else:
+                    _charge(result, "floating_check", check, 0)
+    far = _swapped_far(fitter, frames, results, set(range(len(frames))) - floating.keys())
+    again = sorted([*floating, *far])
     if not again:
         return results
-    as_detected = Fitter(fitter.body, fitter.camera, replace(fitter.config, swap_sides=False),
-                         fitter.scene, fitter.on_stage).fit([frames[b] for b in again])
-    results = list(results)
-    for b, other_fit in zip(again, as_detected):
-        error, other = errors[b], _error_px(fitter, other_fit, frames[b])
-        kept, dropped = (other_fit, results[b]) if other < error else (results[b], other_fit)
-        kept.events.append(f"legs fitted as swapped, {error:.1f} px off; fitted again as "
-                           f"detected, {other:.1f} px; kept the "
-                           + ("fit as detected" if kept is other_fit else "swapped fit"))
-        _discard(kept, dropped)
-        results[b] = kept
+    refits = fitter.fit([frames[b] for b in again],
+                        start=[1 - results[b].start if b in floating else None for b in again],
+                        as_detected=[b in far for b in again])
+    for b, other in zip(again, refits):
+        results[b] = (_kept_less_floating(fitter, results[b], other, floating[b], RESTART_DATA,
+                                          ("", "first", "from the other start", "refit"))
+                      if b in floating else _kept_nearer(fitter, frames[b], results[b],
+                                                         far[b], other))
+    far = _swapped_far(fitter, frames, results, set(floating))
+    if far:
+        as_detected = fitter.fit([frames[b] for b in far], as_detected=[True] * len(far))
+        for b, other in zip(far, as_detected):
+            results[b] = _kept_nearer(fitter, frames[b], results[b], far[b], other)
     return results
+
+
+def _swapped_far(fitter: Fitter, frames: list[Frame], results: list[FitResult],
+                 which: set[int]) -> dict[int, float]:
+    """Of the frames ``which``, those (-> px off) whose fit takes the legs as swapped
+    against the detector and ends over ``config.swap_check_px`` from the keypoints as
+    it labelled them: the start choice compares labellings two stages in, by objective
+    and scene cost; the finished fits tell them apart better (seed 54's kneeler, legs
+    taken as swapped: 11.4 px and 568 mm off, as detected 7.0 px and 65 mm)."""
+    limit = fitter.config.swap_check_px
+    if limit <= 0:
+        return {}
+    errors = {b: _error_px(fitter, results[b], frames[b]) for b in sorted(which)
+              if "legs" in results[b].swapped}
+    return {b: error for b, error in errors.items() if error > limit}
+
+
+def _kept_nearer(fitter: Fitter, frame: Frame, result: FitResult, error: float,
+                 as_detected: FitResult) -> FitResult:
+    """Of ``result`` (legs taken as swapped, ``error`` px off) and ``frame`` fitted again
+    as detected, the fit nearer its keypoints, with an event saying so."""
+    other = _error_px(fitter, as_detected, frame)
+    kept, dropped = (as_detected, result) if other < error else (result, as_detected)
+    kept.events.append(f"legs fitted as swapped, {error:.1f} px off; fitted again as "
+                       f"detected, {other:.1f} px; kept the "
+                       + ("fit as detected" if kept is as_detected else "swapped fit"))
+    _discard(kept, dropped)
+    return kept
 
 
 def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor: FitResult,

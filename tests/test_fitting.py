@@ -516,6 +516,32 @@ def test_a_fit_can_go_on_from_either_start(body):
         assert near[taken] < near[1 - taken], (taken, near)
 
 
+def test_a_batch_fits_each_frame_from_its_own_start_and_labelling(body):
+    """``Fitter.fit`` takes a start per frame (None: the choice's) and which frames to fit
+    with the keypoints labelled as detected: batched so, a frame the detector swapped the
+    legs of (whose fit alone takes them as swapped) keeps the detector's labels, another
+    goes on from the start it was given, and each ends, up to the rounding of batched
+    arithmetic, as it does fitted alone so."""
+    from prox_engine.keypoints import side_swap
+
+    cam2world = tilted_camera()
+    _, keypoints = standing_person(body, cam2world, yaw=0.4)
+    swapped = frame_of(keypoints)
+    swapped.keypoints.data[:] = swapped.keypoints.data[side_swap(("legs",))]
+    turned = frame_of(standing_person(body, cam2world, yaw=0.6)[1])
+    config = FitConfig("short", [Stage("global", {"body": 1.0, "pose_prior": 30.0})],
+                       max_iter=5, max_calls=1, start_candidates=2, start_stages=1)
+    fitter = Fitter(body, CAMERA, config)
+    assert fitter.fit([swapped])[0].swapped == ["legs"]
+    alone = [fitter.fit([swapped], as_detected=[True])[0], fitter.fit([turned], start=1)[0]]
+    both = fitter.fit([swapped, turned], start=[None, 1], as_detected=[True, False])
+    assert both[0].swapped == alone[0].swapped == []
+    assert both[1].start == alone[1].start == 1
+    assert both[0].start == alone[0].start
+    for fit, single in zip(both, alone):
+        assert float((fit.vertices - single.vertices).norm(dim=1).max()) < 0.005
+
+
 def _fit_over_nothing(body, config: str, cut_at_knees: bool = False, frames: int = 1,
                       calls: list[int] | None = None):
     """A standing person fitted from scratch (pipeline._fit_fresh, with ``config``) where
