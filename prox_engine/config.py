@@ -192,7 +192,7 @@ class FitConfig:
     # A frame fitted from scratch whose fit takes the legs as swapped against the detector
     # and ends more than this many px from its keypoints (as it labelled them) is fitted
     # again with the labels as detected, and the fit nearer its keypoints is kept
-    # (pipeline._checked_swaps); 0: never.
+    # (pipeline._swapped_far); 0: never.
     swap_check_px: float = 0.0
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
