@@ -600,6 +600,46 @@ def test_a_batchs_floating_fits_are_fitted_again_together(body):
     assert float((fits[0].vertices - alone.vertices).norm(dim=1).max()) < 0.005
 
 
+def test_a_batchs_refits_of_both_kinds_share_one_fit(body):
+    """A batch of a frame whose fit floats over every surface and one whose fit takes the
+    legs as swapped against the detector (its feet unreported, so not checked for
+    floating): both are fitted again in one fit, the first from its other start, the
+    second with the keypoints as detected, and each is kept or dropped as alone."""
+    from prox_engine.keypoints import side_swap
+    from prox_engine.pipeline import _fit_fresh
+
+    cam2world = tilted_camera()
+    patch = plane_mesh(size=1.0)
+    patch.apply_translation([3.5, 3.0, 0.0])
+    scene = Scene(patch.vertices, patch.faces, cam2world,
+                  compute_sdf(patch.vertices, patch.faces, dim=48, padding=0.5),
+                  sample_spacing=0.1)
+    floating = frame_of(standing_person(body, cam2world, yaw=0.1)[1])
+    swapped = frame_of(standing_person(body, cam2world, yaw=0.4)[1])
+    swapped.keypoints.data[:] = swapped.keypoints.data[side_swap(("legs",))]
+    swapped.keypoints.data[FEET, 2] = 0.0
+    config = load_config("prox")
+    config.swap_check_px = 1e-3
+    fitter = Fitter(body, CAMERA, config, scene)
+    calls: list[tuple[int, dict, list]] = []
+    fit = fitter.fit
+
+    def recorded(frames, **kw):
+        calls.append((len(frames), kw, fit(frames, **kw)))
+        return calls[-1][2]
+
+    fitter.fit = recorded
+    fits = _fit_fresh(fitter, [floating, swapped])
+    assert [n for n, _, _ in calls] == [2, 2], calls
+    first, (_, again, _) = calls[0][2], calls[1]
+    assert again["as_detected"] == [False, True]
+    assert again["start"] == [1 - first[0].start, None]
+    assert any("from the other start" in e for e in fits[0].events), fits[0].events
+    assert any("fitted again as detected" in e for e in fits[1].events), fits[1].events
+    for result in fits:
+        assert result.stage_evaluations["discarded_fit"] > 0
+
+
 def test_a_floating_fit_cut_off_at_the_knees_is_not_fitted_again(body):
     """Where the detector saw no ankle, a floating fit's underside is its guessed legs:
     the frame, which had two starts, is not fitted again from the other."""
