@@ -273,6 +273,9 @@ class Fitter:
         self._size_unit = None if sized_as is None else self.body.relative_size(sized_as)
         starts = list(start) if isinstance(start, Sequence) else [start] * len(frames)
         fixed = [False] * len(frames) if as_detected is None else list(as_detected)
+        if len(starts) != len(frames) or len(fixed) != len(frames):
+            raise ValueError(f"{len(frames)} frames, {len(starts)} starts and {len(fixed)} "
+                             "labellings given: one of each per frame")
         with self._counting():
             return self._fit(frames, warm_start, previous_keypoints, starts, fixed)
 

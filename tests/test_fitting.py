@@ -540,6 +540,8 @@ def test_a_batch_fits_each_frame_from_its_own_start_and_labelling(body):
     assert both[0].start == alone[0].start
     for fit, single in zip(both, alone):
         assert float((fit.vertices - single.vertices).norm(dim=1).max()) < 0.005
+    with pytest.raises(ValueError, match="one of each per frame"):
+        fitter.fit([swapped, turned], start=[None])
 
 
 def _fit_over_nothing(body, config: str, cut_at_knees: bool = False, frames: int = 1,
