@@ -544,6 +544,16 @@ def test_a_batch_fits_each_frame_from_its_own_start_and_labelling(body):
         fitter.fit([swapped, turned], start=[None])
 
 
+def _scene_over_nothing(cam2world: np.ndarray) -> Scene:
+    """A scan with nothing under a person at the camera's target: its only surface a patch
+    of floor 3 m away, so a fit there floats whatever its start."""
+    patch = plane_mesh(size=1.0)
+    patch.apply_translation([3.5, 3.0, 0.0])
+    return Scene(patch.vertices, patch.faces, cam2world,
+                 compute_sdf(patch.vertices, patch.faces, dim=48, padding=0.5),
+                 sample_spacing=0.1)
+
+
 def _fit_over_nothing(body, config: str, cut_at_knees: bool = False, frames: int = 1,
                       calls: list[int] | None = None):
     """A standing person fitted from scratch (pipeline._fit_fresh, with ``config``) where
@@ -555,11 +565,7 @@ def _fit_over_nothing(body, config: str, cut_at_knees: bool = False, frames: int
     from prox_engine.pipeline import _fit_fresh
 
     cam2world = tilted_camera()
-    patch = plane_mesh(size=1.0)
-    patch.apply_translation([3.5, 3.0, 0.0])
-    scene = Scene(patch.vertices, patch.faces, cam2world,
-                  compute_sdf(patch.vertices, patch.faces, dim=48, padding=0.5),
-                  sample_spacing=0.1)
+    scene = _scene_over_nothing(cam2world)
     batch = [frame_of(standing_person(body, cam2world, yaw=0.1 * b)[1]) for b in range(frames)]
     for frame in batch:
         if cut_at_knees:
@@ -611,11 +617,7 @@ def test_a_batchs_refits_of_both_kinds_share_one_fit(body):
     from prox_engine.pipeline import _fit_fresh
 
     cam2world = tilted_camera()
-    patch = plane_mesh(size=1.0)
-    patch.apply_translation([3.5, 3.0, 0.0])
-    scene = Scene(patch.vertices, patch.faces, cam2world,
-                  compute_sdf(patch.vertices, patch.faces, dim=48, padding=0.5),
-                  sample_spacing=0.1)
+    scene = _scene_over_nothing(cam2world)
     floating = frame_of(standing_person(body, cam2world, yaw=0.1)[1])
     swapped = frame_of(standing_person(body, cam2world, yaw=0.4)[1])
     swapped.keypoints.data[:] = swapped.keypoints.data[side_swap(("legs",))]
