@@ -341,18 +341,18 @@ class Fitter:
             distinct = [not all(torch.equal(v[b * keep], v[b * keep + 1])
                                 for v in params.values()) for b in range(len(frames))]
             starts = [(0 if s is None else s) if d else None for d, s in zip(distinct, start)]
-            counts = [keep if s is None else 1 for s in start]
-            taken = [b * keep + r for b, s in enumerate(start)
-                     for r in (range(keep) if s is None else [s])]
-            params = {k: v[taken] for k, v in params.items()}
-            labels = [labels[r] for r in taken]
+            if any(s is not None for s in start):
+                counts = [keep if s is None else 1 for s in start]
+                taken = [b * keep + r for b, s in enumerate(start)
+                         for r in (range(keep) if s is None else [s])]
+                params = {k: v[taken] for k, v in params.items()}
+                labels = [labels[r] for r in taken]
         choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
                          arms=self.config.start_choice_arms, feet_left_out=feet_left_out)
         rows_of = torch.tensor(counts)
         rows = _Rows(params, target.repeat_interleave(rows_of, 0),
                      conf.repeat_interleave(rows_of, 0), detected.repeat_interleave(rows_of, 0),
                      [f.depth_points for f, n in zip(frames, counts) for _ in range(n)], labels)
-        chosen = [s is None for s in start]  # the frames whose start the choice picks
         for b, label in enumerate(labels):  # fit the keypoints as relabelled
             order = side_swap(label)
             rows.target[b], rows.conf[b] = rows.target[b, order], rows.conf[b, order]
@@ -400,8 +400,9 @@ class Fitter:
             if max(counts) > 1 and index + 1 == choice.after:
                 best = self._choose(choice, stage, rows, final, counts)
                 if index + 1 == self.config.start_stages and warm_start is None:
-                    starts = [r - group.start if s is not None and c else s for s, r, group, c
-                              in zip(starts, best, lbfgs.sized_groups(counts), chosen)]
+                    starts = [r - group.start if s is not None and n > 1 else s
+                              for s, r, group, n in zip(starts, best, lbfgs.sized_groups(counts),
+                                                        counts)]
                 rows, final = rows.taken(best), {k: v[best] for k, v in final.items()}
                 counts = [1] * len(frames)
             if (warm_start is None and self.config.arm_restarts
@@ -1094,19 +1095,24 @@ class Fitter:
             return {k: v.clone() for k, v in params.items()}, list(labels)
         before = len(self.events)
         target, conf = self._targets(frames)
-        kinds = [as_detected[b] or not self.config.swap_sides for b in range(len(frames))]
-        found: dict[bool, tuple[Params, list[tuple[str, ...]]]] = {}
-        for single in sorted(set(kinds)):  # frames searched under every labelling first
-            which = [b for b, kind in enumerate(kinds) if kind == single]
-            labellings = LABELLINGS[:1] if single else LABELLINGS
-            params, chosen = best_start(
+        keep = self.config.start_candidates
+        single = [fixed or not self.config.swap_sides for fixed in as_detected]
+        params, labels = {}, [()] * (len(frames) * keep)
+        for kind in sorted(set(single)):  # frames searched under one labelling, or every
+            which = [b for b, s in enumerate(single) if s == kind]
+            labellings = LABELLINGS[:1] if kind else LABELLINGS
+            found, chosen = best_start(
                 self.body, self.camera, target[which], conf[which], self.up,
                 self.config.data_rho, self.config.init_depth_weight,
-                [side_swap(label) for label in labellings], events=self.events,
-                keep=self.config.start_candidates, facing_cost=self.config.facing_cost,
+                [side_swap(label) for label in labellings], events=self.events, keep=keep,
+                facing_cost=self.config.facing_cost,
                 guessed_legs=self._guessed_legs(conf[which]))
-            found[single] = (params, [labellings[int(c)] for c in chosen])
-        params, labels = _in_frame_order(found, kinds, self.config.start_candidates)
+            rows = [b * keep + r for b in which for r in range(keep)]  # in frame order
+            for name, value in found.items():
+                params.setdefault(name, value.new_empty(len(labels), *value.shape[1:]))
+                params[name][rows] = value
+            for row, c in zip(rows, chosen):
+                labels[row] = labellings[int(c)]
         self._started = ([k.copy() for k in keypoints], list(as_detected),
                          {k: v.clone() for k, v in params.items()}, labels,
                          self.events[before:])
@@ -1139,18 +1145,3 @@ class Fitter:
         best = torch.stack(costs).argmin(0)
         return [labellings[int(b)] for b in best]
 
-
-def _in_frame_order(found: dict[bool, tuple[Params, list[tuple[str, ...]]]],
-                    kinds: list[bool], keep: int) -> tuple[Params, list[tuple[str, ...]]]:
-    """The starts and labellings searched apart for the two kinds of frame (``found``:
-    kind -> its frames' ``keep`` rows each, frame-major) put back in frame order
-    (``kinds``: each frame's)."""
-    if len(found) == 1:
-        return next(iter(found.values()))
-    rows, taken = {kind: 0 for kind in found}, []
-    for kind in kinds:  # (kind, row within the kind's search) of every row in frame order
-        taken += [(kind, rows[kind] + r) for r in range(keep)]
-        rows[kind] += keep
-    params = {name: torch.stack([found[kind][0][name][r] for kind, r in taken])
-              for name in found[kinds[0]][0]}
-    return params, [found[kind][1][r] for kind, r in taken]
