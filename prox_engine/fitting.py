@@ -848,28 +848,50 @@ class Fitter:
                    groups: list[slice], plumb: bool = True) -> dict[str, torch.Tensor]:
         """L-BFGS calls on the ``free`` parameters until each frame's loss (its ``groups``
         of rows) settles; returns the terms at the accepted points (not at the line
-        search's last probes). Without ``plumb``, no shin is drawn toward hanging."""
+        search's last probes). Without ``plumb``, no shin is drawn toward hanging. In a
+        stage that poses the mesh (a row's evaluation costs about 1 ms), the frames still
+        running go on over their own rows alone once others have settled."""
         mesh = self._mesh_read(stage)
         spheres = stage.weights.get("self_penetration", 0) > 0
         held = self._held(stage, params, conf, free, plumb)
-        terms_of = self._terms(stage, params, target, conf, depth, previous, free, held)
 
-        def terms() -> dict[str, torch.Tensor]:
-            return terms_of(self.body(params, vertices=mesh, spheres=spheres))
+        def terms_at(rows_params: Params, rows: torch.Tensor | None = None
+                     ) -> Callable[[], dict[str, torch.Tensor]]:
+            """The stage's terms at ``rows_params``, ``rows`` of the frames' (None: all)."""
+            if rows is None:
+                terms_of = self._terms(stage, params, target, conf, depth, previous, free,
+                                       held)
+            else:
+                terms_of = self._terms(
+                    stage, rows_params, target[rows], conf[rows], [depth[r] for r in rows],
+                    previous if previous is None or len(previous) == 1 else previous[rows],
+                    free, self._held(stage, rows_params, conf[rows], free, plumb))
+            return lambda: terms_of(self.body(rows_params, vertices=mesh, spheres=spheres))
 
-        def objective() -> Callable[[slice], torch.Tensor]:
-            # the terms summed once for every row, then per group: each operation on the
-            # way costs about 10 us forward and back, for some 600 evaluations a frame
-            total = torch.stack(list(terms().values())).sum(0)
-            return lambda rows: total[rows].sum()
+        def objective_of(terms: Callable[[], dict[str, torch.Tensor]]) -> lbfgs.Objective:
+            def objective() -> Callable[[slice], torch.Tensor]:
+                # the terms summed once for every row, then per group: each operation on
+                # the way costs about 10 us forward and back, for some 600 evaluations
+                total = torch.stack(list(terms().values())).sum(0)
+                return lambda rows: total[rows].sum()
+            return objective
 
+        terms = terms_at(params)
         direct = self._keypoint_objective(stage, params, free, target, held)
         expanded = (self.body.shape_expanded(params, mesh)
                     if set(self.body.shape_group()) & set(free) else nullcontext())
-        with expanded:
-            self._minimise([params[n] for n in free], direct or objective, stage.name, groups,
-                           stage.max_iter, stage.max_calls or self.config.max_calls,
-                           self.config.ftol)
+        with expanded as narrow_shape:
+            def narrow(rows: torch.Tensor) -> tuple[list[torch.Tensor], lbfgs.Objective]:
+                kept = {k: v[rows].detach().clone() for k, v in params.items()}
+                if narrow_shape is not None:
+                    narrow_shape(rows)
+                return ([kept[n].requires_grad_(True) for n in free],
+                        objective_of(terms_at(kept, rows)))
+
+            self._minimise([params[n] for n in free], direct or objective_of(terms),
+                           stage.name, groups, stage.max_iter,
+                           stage.max_calls or self.config.max_calls, self.config.ftol,
+                           None if direct else narrow)
         with torch.no_grad():
             return terms()
 
@@ -1061,15 +1083,18 @@ class Fitter:
     def _minimise(self, variables: list[torch.Tensor],
                   objective: lbfgs.Objective | lbfgs.Direct,
                   step: str, groups: list[slice], max_iter: int | None = None,
-                  max_calls: int = 1, ftol: float | None = None) -> None:
+                  max_calls: int = 1, ftol: float | None = None,
+                  narrow: lbfgs.Narrow | None = None) -> None:
         """L-BFGS on ``variables``, in place, each group of rows (a frame's) on its own
         (:mod:`lbfgs`): up to ``max_calls`` calls, stopped early when a call changes the
         group's loss by at most ``ftol`` of it. A call that ends on non-finite values is
-        undone, ends the group's step and is recorded in :attr:`events`."""
+        undone, ends the group's step and is recorded in :attr:`events`. With ``narrow``,
+        the groups still running go on over their own rows alone once others end."""
         for v in variables:
             v.requires_grad_(True)
         failed = lbfgs.minimise(variables, objective, groups,
-                                max_iter or self.config.max_iter, max_calls, ftol)
+                                max_iter or self.config.max_iter, max_calls, ftol,
+                                narrow=narrow)
         for v in variables:
             v.requires_grad_(False)
         if any(failed):

@@ -32,6 +32,9 @@ Objective = Callable[[], Callable[[slice], torch.Tensor]]
 # rejects).
 Evaluation = tuple[float, np.ndarray] | None
 Search = Generator[np.ndarray, Evaluation, tuple]
+# Given the rows (ascending) of the groups still running, variables of their own over just
+# those rows, holding the values there, and the objective on them.
+Narrow = Callable[[torch.Tensor], tuple[list[torch.Tensor], "Objective | Direct"]]
 
 
 class Direct(ABC):
@@ -59,7 +62,8 @@ def sized_groups(sizes: list[int]) -> list[slice]:
 
 def minimise(variables: list[torch.Tensor], objective: Objective | Direct,
              groups: list[slice], max_iter: int, max_calls: int = 1,
-             ftol: float | None = None, history: int = 20) -> list[bool]:
+             ftol: float | None = None, history: int = 20, narrow: Narrow | None = None
+             ) -> list[bool]:
     """Minimise each group's loss, ``objective()(rows)`` (a :class:`Direct` one: its rows'
     sum of ``objective.evaluate()``), over its ``rows`` of
     ``variables`` (leaf tensors (B, ...); a group's loss must depend on its rows only), in
@@ -69,15 +73,19 @@ def minimise(variables: list[torch.Tensor], objective: Objective | Direct,
     strong Wolfe, history ``history``), stopped early once a call changes the group's loss
     by at most ``ftol`` times itself (at least 1). A call that fails or ends on non-finite
     values is undone and ends the group's minimisation. Returns, per group, whether that
-    happened."""
+    happened. With ``narrow``, each time groups end the others go on over their own rows
+    alone (``narrow(rows)``), so that a group that has ended stops costing."""
     values = [v.detach().numpy() for v in variables]
     coroutines = [_calls(_flat(values, rows), max_iter, max_calls, ftol, history)
                   for rows in groups]
     asked = {i: next(c) for i, c in enumerate(coroutines)}
     resting = dict(asked)  # each group's rows hold a point evaluated without failing
     failed = [False] * len(groups)
+    running = (variables, objective, groups)  # what the running groups are evaluated on
     while asked:
-        answers = _evaluate(variables, objective, groups, asked, resting)
+        if narrow is not None and len(asked) < sum(g is not None for g in running[2]):
+            running = _narrowed(variables, groups, asked, resting, narrow)
+        answers = _evaluate(*running, asked, resting)
         for i, answer in answers.items():
             try:
                 asked[i] = coroutines[i].send(answer)
@@ -88,9 +96,27 @@ def minimise(variables: list[torch.Tensor], objective: Objective | Direct,
     return failed
 
 
+def _narrowed(variables: list[torch.Tensor], groups: list[slice],
+              asked: dict[int, np.ndarray], resting: dict[int, np.ndarray], narrow: Narrow
+              ) -> tuple[list[torch.Tensor], Objective | Direct, list[slice | None]]:
+    """The variables and objective of the ``asked`` groups' rows alone (``narrow``),
+    their rows first set to where they rest, and each such group's rows in them (None for
+    the groups that have ended)."""
+    kept = sorted(asked)
+    for i in kept:
+        _assign(variables, groups[i], resting[i])
+    rows = torch.cat([torch.arange(groups[i].start, groups[i].stop) for i in kept])
+    narrowed, objective = narrow(rows)
+    sizes = sized_groups([groups[i].stop - groups[i].start for i in kept])
+    placed: list[slice | None] = [None] * len(groups)
+    for i, rows_now in zip(kept, sizes):
+        placed[i] = rows_now
+    return narrowed, objective, placed
+
+
 def _evaluate(variables: list[torch.Tensor], objective: Objective | Direct,
-              groups: list[slice], asked: dict[int, np.ndarray], resting: dict[int, np.ndarray]
-              ) -> dict[int, Evaluation]:
+              groups: list[slice | None], asked: dict[int, np.ndarray],
+              resting: dict[int, np.ndarray]) -> dict[int, Evaluation]:
     """Each asking group's loss and flat gradient at its point, in one evaluation; its rows
     then rest there (``resting``: every running group asks each round, so no group's rows
     need putting back). A group whose point is not finite gets None, and so does one whose
@@ -110,8 +136,8 @@ def _evaluate(variables: list[torch.Tensor], objective: Objective | Direct,
 
 
 def _answers(variables: list[torch.Tensor], objective: Objective | Direct,
-             groups: list[slice], points: dict[int, np.ndarray], resting: dict[int, np.ndarray]
-             ) -> dict[int, tuple[float, np.ndarray]]:
+             groups: list[slice | None], points: dict[int, np.ndarray],
+             resting: dict[int, np.ndarray]) -> dict[int, tuple[float, np.ndarray]]:
     """Loss and flat gradient of the groups at ``points``, where their rows then rest;
     if the evaluation raises, they are put back to their ``resting`` points first."""
     if not points:

@@ -138,3 +138,32 @@ def test_the_direction_is_the_two_loop_recursion_over_the_last_pairs():
         torch.testing.assert_close(
             torch.from_numpy(pairs.direction(grad.numpy(), 0.7)),
             _two_loop(grad, steps[kept], changes[kept], rho[kept], 0.7))
+
+
+def test_groups_still_running_go_on_over_their_own_rows_alone():
+    """With ``narrow``, once a group has ended the others are evaluated on variables of
+    their own rows (the ended group's rows are no longer evaluated) and end where they
+    end without it; the ended group keeps its point."""
+    groups = [slice(0, 1), slice(1, 2), slice(2, 3)]
+    evaluated, narrowed = [], []
+
+    def objective_on(x: torch.Tensor, stiffness: torch.Tensor):
+        def objective():
+            evaluated.append(len(x))
+            losses = _rosenbrock(x, stiffness)
+            return lambda rows: losses[rows].sum()
+        return objective
+
+    def narrow(rows: torch.Tensor):
+        narrowed.append(rows.tolist())
+        kept = x.detach()[rows].clone().requires_grad_(True)
+        return [kept], objective_on(kept, STIFFNESS[rows])
+
+    x = START.clone().requires_grad_(True)
+    lbfgs.minimise([x], objective_on(x, STIFFNESS), groups, 40, ftol=1e-9, narrow=narrow)
+    plain = _lockstep(START, STIFFNESS, groups, 40)
+    torch.testing.assert_close(x.detach(), plain, rtol=1e-9, atol=1e-9)
+    assert narrowed and all(len(rows) < 3 for rows in narrowed)
+    assert min(evaluated) < 3 and evaluated[-1] == len(narrowed[-1])
+    for earlier, later in zip(narrowed, narrowed[1:]):
+        assert set(later) < set(earlier)

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -86,12 +86,13 @@ class BodyModel(ABC, torch.nn.Module):
 
     @contextmanager
     def shape_expanded(self, params: Params, vertices: bool | VertexSubset
-                       ) -> Iterator[None]:
+                       ) -> Iterator[Callable[[torch.Tensor], None]]:
         """Within it, a model may compute what depends on the shape from its first-order
         expansion about the shape of ``params``, for their rows and the ``vertices`` posed
         in one optimisation (a model whose shape is linear, or cheap, has nothing to
-        gain)."""
-        yield
+        gain). It gives a function that narrows the expansion to some rows of ``params``,
+        for the optimisation to go on over those rows alone."""
+        yield lambda rows: None
 
     def keypoint_path(self, params: Params) -> KeypointPath | None:
         """The keypoints and posture priors of ``params`` (their shape held) with their
