@@ -859,8 +859,8 @@ class Fitter:
                      ) -> Callable[[], dict[str, torch.Tensor]]:
             """The stage's terms at ``rows_params``, ``rows`` of the frames' (None: all)."""
             if rows is None:
-                terms_of = self._terms(stage, params, target, conf, depth, previous, free,
-                                       held)
+                terms_of = self._terms(stage, rows_params, target, conf, depth, previous,
+                                       free, held)
             else:
                 terms_of = self._terms(
                     stage, rows_params, target[rows], conf[rows], [depth[r] for r in rows],

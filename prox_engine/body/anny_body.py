@@ -565,15 +565,13 @@ class AnnyBody(BodyModel):
             blend = subset.data["blendshapes"]  # (C, V, 3)
             at.append(subset.data["template"] + torch.einsum("bc,cvd->bvd", coeffs, blend))
             slopes.append(coeff_slope @ blend.flatten(1))
-        whole = {"shape": base, "subset": subset, "at": at,
-                 "slope": [s.contiguous() for s in slopes]}
+        slopes = [s.contiguous() for s in slopes]
 
         def narrow(rows: torch.Tensor) -> None:
             self._expansion = {"shape": base[rows], "subset": subset,
-                               "at": [v[rows] for v in at],
-                               "slope": [v[rows] for v in whole["slope"]]}
+                               "at": [v[rows] for v in at], "slope": [v[rows] for v in slopes]}
 
-        self._expansion = whole
+        self._expansion = {"shape": base, "subset": subset, "at": at, "slope": slopes}
         try:
             yield narrow
         finally:
