@@ -1075,7 +1075,7 @@ class Fitter:
         """:meth:`_rescale` of the frames whose rows are ``groups``, posing their rows
         alone; with the shape ``expanded`` or exact."""
         body, defined = self.body, self.body.keypoint_mask
-        rows = torch.cat([torch.arange(group.start, group.stop) for group in groups])
+        rows, packed_groups = lbfgs.packed(groups)
         part = {k: v[rows].clone() for k, v in params.items()}
         with torch.no_grad():
             goal = body(part, vertices=False).keypoints[:, defined] * scale[rows, None, None]
@@ -1088,8 +1088,7 @@ class Fitter:
 
         with body.shape_expanded(part, False) if expanded else nullcontext():
             self._minimise([part[n] for n in ["transl", "global_orient", *body.shape_group()]],
-                           objective, "rescale",
-                           lbfgs.sized_groups([group.stop - group.start for group in groups]))
+                           objective, "rescale", packed_groups)
         for name, value in part.items():
             params[name][rows] = value
 

@@ -60,6 +60,12 @@ def sized_groups(sizes: list[int]) -> list[slice]:
     return [slice(end - size, end) for size, end in zip(sizes, accumulate(sizes))]
 
 
+def packed(groups: list[slice]) -> tuple[torch.Tensor, list[slice]]:
+    """The rows of ``groups`` (indices, in order) and where each group's lie among them."""
+    rows = torch.cat([torch.arange(group.start, group.stop) for group in groups])
+    return rows, sized_groups([group.stop - group.start for group in groups])
+
+
 def minimise(variables: list[torch.Tensor], objective: Objective | Direct,
              groups: list[slice], max_iter: int, max_calls: int = 1,
              ftol: float | None = None, history: int = 20, narrow: Narrow | None = None
@@ -105,11 +111,10 @@ def _narrowed(variables: list[torch.Tensor], groups: list[slice],
     kept = sorted(asked)
     for i in kept:
         _assign(variables, groups[i], resting[i])
-    rows = torch.cat([torch.arange(groups[i].start, groups[i].stop) for i in kept])
+    rows, packed_groups = packed([groups[i] for i in kept])
     narrowed, objective = narrow(rows)
-    sizes = sized_groups([groups[i].stop - groups[i].start for i in kept])
     placed: list[slice | None] = [None] * len(groups)
-    for i, rows_now in zip(kept, sizes):
+    for i, rows_now in zip(kept, packed_groups):
         placed[i] = rows_now
     return narrowed, objective, placed
 
