@@ -44,6 +44,13 @@ class FitConfig:
     # ... and that the legs it reports faintly be out of view (see
     # scale_search.FAINT_WEIGHT)
     scale_faint_legs: bool = True
+    # ... and weighs the size prior (scale_search.size_prior) by this: at 0.1 it lets the
+    # scene move a body by up to about 25 % (4.5 sigma) when that brings every contact
+    # part onto a surface, but not by 6-12 % only to touch a wall behind it with the back
+    scale_size_weight: float = 0.1
+    # ... or by this in a sequence's warm-started frames, where it centres on the anchor's
+    # size (sequence_anchor_size)
+    sequence_size_weight: float = 0.1
     # ... and counts a body through a thin surface by its axis (see scale_search.AXIS_WEIGHT)
     scale_axes: bool = True
     # ... and counts a standing body's contact parts but the feet as missing (see

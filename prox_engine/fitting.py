@@ -527,7 +527,7 @@ class Fitter:
         for rank in range(max(counts)):
             rows = torch.stack([order[rank] for order in ranked if rank < len(order)])
             scale, cost = search(rows, (best[frame[rows]] - score[rows]) / weight)
-            costs[rows] = cost + size_prior(scale, sizes[rows])
+            costs[rows] = cost + size_prior(scale, self._size_weight(), sizes[rows])
             best.scatter_reduce_(0, frame[rows], score[rows] + weight * costs[rows], "amin")
         return costs
 
@@ -962,7 +962,8 @@ class Fitter:
                               self.toes, None if axes is None else axes[rows],
                               [faint[r] for r in rows] if cfg.scale_faint_legs else None,
                               ceilings, None if counted is None else counted[rows],
-                              sizes[rows], None if feet is None else feet[rows])
+                              sizes[rows], None if feet is None else feet[rows],
+                              size_weight=self._size_weight())
         return search, sizes
 
     def _sizes(self, params: Params) -> torch.Tensor:
@@ -975,6 +976,12 @@ class Fitter:
         in five frames)."""
         sizes = self.body.relative_size(params)
         return sizes if self._size_unit is None else sizes / self._size_unit
+
+    def _size_weight(self) -> float:
+        """The size prior's weight: a population's about the prior-mean body's size, or,
+        in sequence mode, a chain's about its anchor's (see FitConfig.scale_size_weight)."""
+        cfg = self.config
+        return cfg.scale_size_weight if self._size_unit is None else cfg.sequence_size_weight
 
     def _faint_legs(self, detected: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
         """(..., 25) bool: the knees and ankles the detector reports under HIDDEN

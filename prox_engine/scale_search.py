@@ -26,10 +26,6 @@ SCALES = torch.exp(torch.linspace(math.log(0.7), math.log(1.4), 97))
 PENETRATION_SCALE = 0.02  # a vertex 2 cm inside counts fully as penetrating
 PENETRATION_WEIGHT = 10.0  # 10 % of the body inside the scene outweighs every contact
 SCALE_SIGMA = 0.06  # spread of adult body size around the fitted (prior-mean) size
-# Scaled by 0.1, the size prior lets the scene move a body by up to about 25 % (4.5 sigma)
-# when that brings every contact part onto a surface, but not by 6-12 % only to touch a
-# wall behind it with the back.
-PRIOR_WEIGHT = 0.1
 SUPPORT_WEIGHT = 1.0  # an unsupported body costs as much as missing every contact part
 DOWNWARD = -0.5  # body vertices whose world normal points this far down can rest on a surface
 UPWARD = 0.7  # scene surfaces whose normal points this far up can carry a body
@@ -210,8 +206,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                faint_joints: list[torch.Tensor] | None = None,
                ceilings: torch.Tensor | None = None,
                counted_parts: torch.Tensor | None = None,
-               sizes: torch.Tensor | None = None, feet: torch.Tensor | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+               sizes: torch.Tensor | None = None, feet: torch.Tensor | None = None, *,
+               size_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
     vertices more than PENETRATION_MARGIN inside it plus, with ``use_support``, how far
@@ -224,8 +220,9 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     ``vertices`` and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part, of which a body counts those ``counted_parts`` ((B, P) bool;
-    :func:`standing_counts`) and the others as missing. The size prior reads each body's
-    size at a scale as ``sizes`` ((B,); without, 1) times the scale (:func:`size_prior`).
+    :func:`standing_counts`) and the others as missing. The size prior, weighted
+    ``size_weight``, reads each body's size at a scale as ``sizes`` ((B,); without, 1)
+    times the scale (:func:`size_prior`).
     The ``feet`` ((B,) bool, :func:`feet_carried`) bodies rest only on their lowest
     vertices (FEET_CARRY_LEG).
     Returns (B,) scales and (B,) their costs without the size prior (0: every part
@@ -238,7 +235,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     26 bodies at once in batches: one call of each scene query per body and round cost a
     fifth of the search)."""
     sizes = torch.ones(len(vertices)) if sizes is None else sizes
-    prior = size_prior(SCALES, sizes[:, None])  # (B, 97)
+    prior = size_prior(SCALES, size_weight, sizes[:, None])  # (B, 97)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     placed, carrying = vertices[:, sampled], carrying[sampled]
     counted = torch.ones(len(sampled)) if toes is None else ~toes[sampled]
@@ -314,12 +311,13 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     return torch.stack(best), torch.stack(lowest_cost)
 
 
-def size_prior(scales: torch.Tensor, sizes: torch.Tensor | None = None) -> torch.Tensor:
-    """The weak prior on body size of a body scaled by ``scales`` whose size is ``sizes``
-    (1 without) times the size the prior centres on (the prior-mean body's, or a
-    sequence's anchor's: Fitter._sizes)."""
+def size_prior(scales: torch.Tensor, weight: float, sizes: torch.Tensor | None = None
+               ) -> torch.Tensor:
+    """The weak prior on body size, weighted ``weight`` (see FitConfig.scale_size_weight),
+    of a body scaled by ``scales`` whose size is ``sizes`` (1 without) times the size the
+    prior centres on (the prior-mean body's, or a sequence's anchor's: Fitter._sizes)."""
     size = scales if sizes is None else scales * sizes
-    return PRIOR_WEIGHT * (torch.log(size) / SCALE_SIGMA) ** 2 / 2
+    return weight * (torch.log(size) / SCALE_SIGMA) ** 2 / 2
 
 
 def bounded_search(cost_at: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],

@@ -6,6 +6,7 @@ import json
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -1498,6 +1499,30 @@ def test_sequence_mode_can_search_each_frames_scale(body):
 
     searched, carried = error(True), error(False)
     assert searched < 0.08 and carried > 0.2, (searched, carried)
+
+
+def test_a_sequences_size_prior_about_its_anchor_has_its_own_weight(body):
+    """A frame warm-started 15 % too big and too far (its soles through the floor), its
+    size prior centred on that size (its anchor's): the scale search weighs the prior by
+    ``sequence_size_weight``, not by the single frames' ``scale_size_weight`` (lighter in
+    `prox`, 0.06 against 0.1: a person's size in a sequence is the anchor's, the
+    population's spread is wider). Weighed heavily it keeps the anchor's size off the
+    floor; the single frames' weight made as heavy leaves the search bringing it back."""
+    scene, params, out = _standing_on_floor(body)
+    truth = out.keypoints[0, :25]
+    config = load_config("prox")
+    assert config.scale_size_weight < config.sequence_size_weight
+    too_far = {k: v.clone() for k, v in params.items()}
+    Fitter(body, CAMERA, config, scene)._rescale(too_far, torch.tensor([1.15]), frames=1)
+
+    def error(**weights: float) -> float:
+        fitter = Fitter(body, CAMERA, replace(config, **weights), scene)
+        result = fitter.fit([frame_of(truth)], warm_start=too_far, sized_as=too_far)[0]
+        return float((result.keypoints[:25] - truth).norm(dim=1).mean())
+
+    assert error() < 0.08
+    assert error(sequence_size_weight=50.0) > 0.2
+    assert error(scale_size_weight=50.0) < 0.08
 
 
 def test_sequence_mode_centres_the_size_prior_on_the_anchors_size(body):
