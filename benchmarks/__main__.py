@@ -26,8 +26,8 @@ from .generate import KINDS, make_benchmark
 
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
 CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-scale-search",
-           "prox-no-support", "prox-no-feet-carry", "prox-firm-size-prior", "prox-sunk-feet",
-           "prox-no-visibility",
+           "prox-no-support", "prox-no-feet-carry", "prox-firm-size-prior",
+           "prox-light-chain-size", "prox-sunk-feet", "prox-no-visibility",
            "prox-no-axes", "prox-toes-counted", "prox-unpointed-feet", "prox-toe-rays",
            "prox-one-start",
            "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",

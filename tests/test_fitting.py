@@ -1505,7 +1505,7 @@ def test_a_sequences_size_prior_about_its_anchor_has_its_own_weight(body):
     """A frame warm-started 15 % too big and too far (its soles through the floor), its
     size prior centred on that size (its anchor's): the scale search weighs the prior by
     ``sequence_size_weight``, not by the single frames' ``scale_size_weight`` (lighter in
-    `prox`, 0.06 against 0.1: a person's size in a sequence is the anchor's, the
+    `prox`, 0.06 against 0.15: a person's size in a sequence is the anchor's, the
     population's spread is wider). Weighed heavily it keeps the anchor's size off the
     floor; the single frames' weight made as heavy leaves the search bringing it back."""
     scene, params, out = _standing_on_floor(body)
