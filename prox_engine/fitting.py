@@ -879,12 +879,12 @@ class Fitter:
         terms = terms_at(params)
         direct = self._keypoint_objective(stage, params, free, target, held)
         expanded = (self.body.shape_expanded(params, mesh)
-                    if set(self.body.shape_group()) & set(free) else nullcontext())
+                    if set(self.body.shape_group()) & set(free)
+                    else nullcontext(lambda rows: None))
         with expanded as narrow_shape:
             def narrow(rows: torch.Tensor) -> tuple[list[torch.Tensor], lbfgs.Objective]:
                 kept = {k: v[rows].detach().clone() for k, v in params.items()}
-                if narrow_shape is not None:
-                    narrow_shape(rows)
+                narrow_shape(rows)
                 return ([kept[n].requires_grad_(True) for n in free],
                         objective_of(terms_at(kept, rows)))
 

@@ -88,9 +88,10 @@ def minimise(variables: list[torch.Tensor], objective: Objective | Direct,
     resting = dict(asked)  # each group's rows hold a point evaluated without failing
     failed = [False] * len(groups)
     running = (variables, objective, groups)  # what the running groups are evaluated on
+    held = len(groups)  # how many groups' rows ``running`` holds
     while asked:
-        if narrow is not None and len(asked) < sum(g is not None for g in running[2]):
-            running = _narrowed(variables, groups, asked, resting, narrow)
+        if narrow is not None and len(asked) < held:
+            running, held = _narrowed(variables, groups, asked, resting, narrow), len(asked)
         answers = _evaluate(*running, asked, resting)
         for i, answer in answers.items():
             try:
