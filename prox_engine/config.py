@@ -201,6 +201,10 @@ class FitConfig:
     # again with the labels as detected, and the fit nearer its keypoints is kept
     # (pipeline._swapped_far); 0: never.
     swap_check_px: float = 0.0
+    # ... the fit as detected kept only where its error is under this share of the swapped
+    # fit's: the start choice preferred the swap by objective and scene cost, so a tie
+    # keeps it (pipeline._kept_nearer).
+    swap_check_nearer: float = 1.0
     max_iter: int = 20  # L-BFGS iterations per call
     max_calls: int = 2  # calls per stage, stopped earlier when the loss settles
     ftol: float = 1e-5

@@ -229,9 +229,11 @@ def _swapped_far(fitter: Fitter, frames: list[Frame], results: list[FitResult],
 def _kept_nearer(fitter: Fitter, frame: Frame, result: FitResult, error: float,
                  as_detected: FitResult) -> FitResult:
     """Of ``result`` (legs taken as swapped, ``error`` px off) and ``frame`` fitted again
-    as detected, the fit nearer its keypoints, with an event saying so."""
+    as detected, the fit as detected where it is nearer its keypoints by the share
+    ``config.swap_check_nearer`` of ``error``, else ``result``, with an event saying so."""
     other = _error_px(fitter, as_detected, frame)
-    kept, dropped = (as_detected, result) if other < error else (result, as_detected)
+    nearer = other < fitter.config.swap_check_nearer * error
+    kept, dropped = (as_detected, result) if nearer else (result, as_detected)
     kept.events.append(f"legs fitted as swapped, {error:.1f} px off; fitted again as "
                        f"detected, {other:.1f} px; kept the "
                        + ("fit as detected" if kept is as_detected else "swapped fit"))

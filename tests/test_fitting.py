@@ -658,8 +658,9 @@ def test_a_fit_with_the_legs_swapped_far_from_its_keypoints_is_checked(body):
     """A fit that takes the legs as swapped against the detector and ends over
     ``swap_check_px`` from its keypoints is fitted again with the labels as detected, and
     the fit nearer its keypoints is kept (here the swap, which the detector did make),
-    with an event and the dropped fit's cost; under the limit, or with the legs as
-    detected, the fit stands alone."""
+    with an event and the dropped fit's cost, unless the fit as detected comes within
+    ``swap_check_nearer`` of its error (a share over 1 keeps it though further off);
+    under the limit, or with the legs as detected, the fit stands alone."""
     from prox_engine.keypoints import side_swap
     from prox_engine.pipeline import _fit_fresh
 
@@ -669,8 +670,8 @@ def test_a_fit_with_the_legs_swapped_far_from_its_keypoints_is_checked(body):
     swapped.keypoints.data[:] = swapped.keypoints.data[side_swap(("legs",))]
     config = load_config("rgb")
 
-    def fit(frame: Frame, limit: float):
-        config.swap_check_px = limit
+    def fit(frame: Frame, limit: float, nearer: float = 1.0):
+        config.swap_check_px, config.swap_check_nearer = limit, nearer
         return _fit_fresh(Fitter(body, CAMERA, config), [frame])[0]
 
     checked = fit(swapped, 1e-3)
@@ -678,6 +679,9 @@ def test_a_fit_with_the_legs_swapped_far_from_its_keypoints_is_checked(body):
     assert any("fitted again as detected" in e and "kept the swapped fit" in e
                for e in checked.events), checked.events
     assert checked.stage_evaluations["discarded_fit"] > 0
+    overruled = fit(swapped, 1e-3, nearer=1e6)
+    assert overruled.swapped == []
+    assert any("kept the fit as detected" in e for e in overruled.events), overruled.events
     for alone in (fit(swapped, 0.0), fit(swapped, 1e3), fit(frame_of(keypoints), 1e-3)):
         assert "discarded_fit" not in alone.stage_evaluations
         assert not any("fitted again as detected" in e for e in alone.events)
