@@ -270,9 +270,10 @@ class FitConfig:
     upright_rho: float = 0.35
     # Every stage: a trunk within level_rho (radians) of the horizontal is drawn level
     # (keypoint_terms.trunk_terms, a reward, 0 beyond: a fit that never comes that near
-    # level does not change at all): a lying trunk seen along the camera's rays was fitted pitched up
-    # toward the camera, hips 30 cm off. The start choice and the restarts' choices leave
-    # it out: it shapes fits, it does not rank a lying posture over a seated one.
+    # level does not change at all): a lying trunk seen along the camera's rays was
+    # fitted pitched up toward the camera, hips 30 cm off. The start choice and the
+    # restarts' choices leave it out: it shapes fits, it does not rank a lying posture
+    # over a seated one.
     level_weight: float = 0.0
     level_rho: float = 0.4
     # Every stage: the shin of a leg the detector reports down to the knee and no further
