@@ -229,8 +229,8 @@ def _swapped_far(fitter: Fitter, frames: list[Frame], results: list[FitResult],
 def _kept_nearer(fitter: Fitter, frame: Frame, result: FitResult, error: float,
                  as_detected: FitResult) -> FitResult:
     """Of ``result`` (legs taken as swapped, ``error`` px off) and ``frame`` fitted again
-    as detected, the fit as detected where it is nearer its keypoints by the share
-    ``config.swap_check_nearer`` of ``error``, else ``result``, with an event saying so."""
+    as detected, the fit as detected where it ends under ``config.swap_check_nearer``
+    times ``error`` from its keypoints, else ``result``, with an event saying so."""
     other = _error_px(fitter, as_detected, frame)
     nearer = other < fitter.config.swap_check_nearer * error
     kept, dropped = (as_detected, result) if nearer else (result, as_detected)

@@ -658,9 +658,9 @@ def test_a_fit_with_the_legs_swapped_far_from_its_keypoints_is_checked(body):
     """A fit that takes the legs as swapped against the detector and ends over
     ``swap_check_px`` from its keypoints is fitted again with the labels as detected, and
     the fit nearer its keypoints is kept (here the swap, which the detector did make),
-    with an event and the dropped fit's cost, unless the fit as detected comes within
-    ``swap_check_nearer`` of its error (a share over 1 keeps it though further off);
-    under the limit, or with the legs as detected, the fit stands alone."""
+    with an event and the dropped fit's cost; the fit as detected is kept where its error
+    is under ``swap_check_nearer`` times the swapped fit's (a share over 1 keeps it though
+    further off); under the limit, or with the legs as detected, the fit stands alone."""
     from prox_engine.keypoints import side_swap
     from prox_engine.pipeline import _fit_fresh
 
