@@ -38,7 +38,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-no-facing", "prox-no-upright", "prox-free-cut-shins", "prox-faint-legs-in-view",
            "prox-scene-translates", "prox-no-scene-guard",
            "prox-no-floating-restart", "prox-unchecked-swaps", "prox-swap-ties-detected",
-           "prox-no-give",
+           "prox-legs-swap-check", "prox-no-give",
            "prox-feet-tolerant", "prox-unlevelled",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",
            "prox", "prox-soft", "prox" + SEQUENCE,

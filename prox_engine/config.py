@@ -196,11 +196,12 @@ class FitConfig:
     # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose
     # underside is the legs' guessed posture (pipeline._fit_fresh).
     floating_restart: bool = False
-    # A frame fitted from scratch whose fit takes the legs as swapped against the detector
-    # and ends more than this many px from its keypoints (as it labelled them) is fitted
-    # again with the labels as detected, and the fit nearer its keypoints is kept
-    # (pipeline._swapped_far); 0: never.
+    # A frame fitted from scratch whose fit takes one of swap_check_parts ("legs", "arms")
+    # as swapped against the detector and ends more than swap_check_px from its keypoints
+    # (as it labelled them) is fitted again with the labels as detected, and the fit
+    # nearer its keypoints is kept (pipeline._swapped_far); 0 px: never.
     swap_check_px: float = 0.0
+    swap_check_parts: list[str] = field(default_factory=lambda: ["legs"])
     # ... the fit as detected kept only where its error is under this share of the swapped
     # fit's: the start choice preferred the swap by objective and scene cost, so a tie
     # keeps it (pipeline._kept_nearer).

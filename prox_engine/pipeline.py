@@ -177,8 +177,8 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     guessed posture, its gap no evidence against the fit, and the refit rests its own
     guessed legs on a surface at whatever depth that takes (seed 8's sitter, cut off at
     the knees: refitted 26 % too far, 130 -> 772 mm). Each other frame whose fit takes
-    the legs as swapped against the detector and ends far from its keypoints is fitted
-    again as detected (:func:`_swapped_far`); so is a floating frame's fit kept after
+    the legs or arms as swapped against the detector and ends far from its keypoints is
+    fitted again as detected (:func:`_swapped_far`); so is a floating frame's fit kept after
     its refit. A batch's frames fitted again are fitted together, whatever they are
     fitted again for: one fit, and one more for the kept refits that need checking."""
     results = list(fitter.fit(frames))
@@ -213,29 +213,30 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
 
 def _swapped_far(fitter: Fitter, frames: list[Frame], results: list[FitResult],
                  which: set[int]) -> dict[int, float]:
-    """Of the frames ``which``, those (-> px off) whose fit takes the legs as swapped
-    against the detector and ends over ``config.swap_check_px`` from the keypoints as
-    it labelled them: the start choice compares labellings two stages in, by objective
-    and scene cost; the finished fits tell them apart better (seed 54's kneeler, legs
-    taken as swapped: 11.4 px and 568 mm off, as detected 7.0 px and 65 mm)."""
-    limit = fitter.config.swap_check_px
+    """Of the frames ``which``, those (-> px off) whose fit takes one of
+    ``config.swap_check_parts`` as swapped against the detector and ends over
+    ``config.swap_check_px`` from the keypoints as it labelled them: the start choice
+    compares labellings two stages in, by objective and scene cost; the finished fits
+    tell them apart better (seed 54's kneeler, legs taken as swapped: 11.4 px and 568 mm
+    off, as detected 7.0 px and 65 mm)."""
+    limit, parts = fitter.config.swap_check_px, set(fitter.config.swap_check_parts)
     if limit <= 0:
         return {}
     errors = {b: _error_px(fitter, results[b], frames[b]) for b in sorted(which)
-              if "legs" in results[b].swapped}
+              if parts & set(results[b].swapped)}
     return {b: error for b, error in errors.items() if error > limit}
 
 
 def _kept_nearer(fitter: Fitter, frame: Frame, result: FitResult, error: float,
                  as_detected: FitResult) -> FitResult:
-    """Of ``result`` (legs taken as swapped, ``error`` px off) and ``frame`` fitted again
+    """Of ``result`` (parts taken as swapped, ``error`` px off) and ``frame`` fitted again
     as detected, the fit as detected where it ends under ``config.swap_check_nearer``
     times ``error`` from its keypoints, else ``result``, with an event saying so."""
     other = _error_px(fitter, as_detected, frame)
     nearer = other < fitter.config.swap_check_nearer * error
     kept, dropped = (as_detected, result) if nearer else (result, as_detected)
-    kept.events.append(f"legs fitted as swapped, {error:.1f} px off; fitted again as "
-                       f"detected, {other:.1f} px; kept the "
+    kept.events.append(f"{' and '.join(result.swapped)} fitted as swapped, {error:.1f} px "
+                       f"off; fitted again as detected, {other:.1f} px; kept the "
                        + ("fit as detected" if kept is as_detected else "swapped fit"))
     _discard(kept, dropped)
     return kept

@@ -654,35 +654,40 @@ def test_a_floating_fit_cut_off_at_the_knees_is_not_fitted_again(body):
     assert "discarded_fit" not in fit.stage_evaluations
 
 
-def test_a_fit_with_the_legs_swapped_far_from_its_keypoints_is_checked(body):
-    """A fit that takes the legs as swapped against the detector and ends over
-    ``swap_check_px`` from its keypoints is fitted again with the labels as detected, and
-    the fit nearer its keypoints is kept (here the swap, which the detector did make),
-    with an event and the dropped fit's cost; the fit as detected is kept where its error
-    is under ``swap_check_nearer`` times the swapped fit's (a share over 1 keeps it though
-    further off); under the limit, or with the legs as detected, the fit stands alone."""
+@pytest.mark.parametrize("part", ["legs", "arms"])
+def test_a_fit_with_a_part_swapped_far_from_its_keypoints_is_checked(body, part):
+    """A fit that takes a part of ``swap_check_parts`` (the legs, the arms) as swapped
+    against the detector and ends over ``swap_check_px`` from its keypoints is fitted
+    again with the labels as detected, and the fit nearer its keypoints is kept (here the
+    swap, which the detector did make), with an event and the dropped fit's cost; the fit
+    as detected is kept where its error is under ``swap_check_nearer`` times the swapped
+    fit's (a share over 1 keeps it though further off); under the limit, with the part
+    not checked, or with the sides as detected, the fit stands alone."""
     from prox_engine.keypoints import side_swap
     from prox_engine.pipeline import _fit_fresh
 
     cam2world = tilted_camera()
     _, keypoints = standing_person(body, cam2world, yaw=0.4)
     swapped = frame_of(keypoints)
-    swapped.keypoints.data[:] = swapped.keypoints.data[side_swap(("legs",))]
+    swapped.keypoints.data[:] = swapped.keypoints.data[side_swap((part,))]
     config = load_config("rgb")
 
-    def fit(frame: Frame, limit: float, nearer: float = 1.0):
+    def fit(frame: Frame, limit: float, nearer: float = 1.0, parts: tuple = (part,)):
         config.swap_check_px, config.swap_check_nearer = limit, nearer
+        config.swap_check_parts = list(parts)
         return _fit_fresh(Fitter(body, CAMERA, config), [frame])[0]
 
     checked = fit(swapped, 1e-3)
-    assert checked.swapped == ["legs"]
-    assert any("fitted again as detected" in e and "kept the swapped fit" in e
+    assert checked.swapped == [part]
+    assert any(f"{part} fitted as swapped" in e and "kept the swapped fit" in e
                for e in checked.events), checked.events
     assert checked.stage_evaluations["discarded_fit"] > 0
     overruled = fit(swapped, 1e-3, nearer=1e6)
     assert overruled.swapped == []
     assert any("kept the fit as detected" in e for e in overruled.events), overruled.events
-    for alone in (fit(swapped, 0.0), fit(swapped, 1e3), fit(frame_of(keypoints), 1e-3)):
+    other = ({"legs", "arms"} - {part}).pop()
+    for alone in (fit(swapped, 0.0), fit(swapped, 1e3), fit(swapped, 1e-3, parts=(other,)),
+                  fit(frame_of(keypoints), 1e-3)):
         assert "discarded_fit" not in alone.stage_evaluations
         assert not any("fitted again as detected" in e for e in alone.events)
 
