@@ -13,8 +13,9 @@ and 0.5-1.5 degrees off. Keypoints are what a detector reports (``benchmarks.det
 per-person offsets from the model's joints, left/right swaps and blur, on top of 2-4 px
 noise; occluded joints are weakened or dropped, joints beyond the image's edge are not
 reported (a tenth of the recordings are framed so that its bottom edge crosses the shins),
-and some frames hold a spurious second person. Ground truth (never read by the fitter): ``ground_truth/<rec>/<frame>.npz``
-with camera-frame ``vertices`` (V, 3) and BODY_25 ``joints`` (25, 3), and ``meta.json``.
+and some frames hold a spurious second person. Ground truth (never read by the fitter):
+``ground_truth/<rec>/<frame>.npz`` with camera-frame ``vertices`` (V, 3) and BODY_25
+``joints`` (25, 3), and ``meta.json``.
 """
 from __future__ import annotations
 

@@ -9,7 +9,8 @@ import torch
 
 @dataclass
 class Camera:
-    """Intrinsics of the colour camera; points are in camera coordinates (x right, y down, z fwd)."""
+    """Intrinsics of the colour camera; points are in camera coordinates (x right, y down,
+    z forward)."""
 
     fx: float
     fy: float

@@ -179,8 +179,9 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     the knees: refitted 26 % too far, 130 -> 772 mm). Each other frame whose fit takes
     the legs or arms (``config.swap_check_parts``) as swapped against the detector and
     ends far from its keypoints is fitted again as detected (:func:`_swapped_far`); so is
-    a floating frame's fit kept after its refit. A batch's frames fitted again are fitted together, whatever they are
-    fitted again for: one fit, and one more for the kept refits that need checking."""
+    a floating frame's fit kept after its refit. A batch's frames fitted again are fitted
+    together, whatever they are fitted again for: one fit, and one more for the kept
+    refits that need checking."""
     results = list(fitter.fit(frames))
     floating: dict[int, float] = {}  # frame -> seconds its floating check took
     if fitter.config.floating_restart and fitter.scene is not None:
