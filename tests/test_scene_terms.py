@@ -1,6 +1,7 @@
 """SDF sign and distances, penetration and contact terms, projection."""
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 
@@ -17,12 +18,18 @@ from prox_engine.scene_sdf import SignedDistanceField, cached_sdf, compute_sdf
 from .conftest import closed_box, plane_mesh
 
 
-def best_scale(*args, **kwargs) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`scale_search.best_scale` with ``prox``'s size prior weight."""
+@functools.cache
+def _prox_size_weight() -> float:
     from prox_engine.config import load_config
+
+    return load_config("prox").scale_size_weight
+
+
+def best_scale(*args, **kwargs) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`scale_search.best_scale` with ``prox``'s size prior weight (read once)."""
     from prox_engine.scale_search import best_scale as search
 
-    return search(*args, size_weight=load_config("prox").scale_size_weight, **kwargs)
+    return search(*args, size_weight=_prox_size_weight(), **kwargs)
 
 
 def _carrying(body) -> torch.Tensor:
