@@ -7,6 +7,7 @@ from pathlib import Path
 import yaml
 
 from .errors import InputError
+from .keypoints import SIDE_PAIRS
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 BODY_MODELS = ("anny", "smplx")
@@ -377,4 +378,8 @@ def load_config(name_or_path: str | Path, model: str = "anny") -> FitConfig:
     unknown = set(raw) - known
     if unknown:
         raise InputError(path, f"unknown settings {sorted(unknown)}")
+    parts = set(raw.get("swap_check_parts", [])) - set(SIDE_PAIRS)
+    if parts:
+        raise InputError(path, f"swap_check_parts: unknown parts {sorted(parts)} "
+                               f"(known: {', '.join(SIDE_PAIRS)})")
     return FitConfig(name=path.stem, stages=stages, **raw)

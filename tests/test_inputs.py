@@ -133,6 +133,9 @@ def test_configs(tmp_path):
     bad = _write(tmp_path / "bad.yaml", "stages:\n  - {body: 1, wings: 2}\n")
     with pytest.raises(InputError, match="unknown terms"):
         load_config(bad)
+    typo = _write(tmp_path / "typo.yaml", "base: prox\nswap_check_parts: [legs, arm]\n")
+    with pytest.raises(InputError, match=r"swap_check_parts: unknown parts \['arm'\]"):
+        load_config(typo)
 
 
 def test_config_inherits_from_its_base(tmp_path):
