@@ -22,6 +22,7 @@ from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, 
                         cut_legs, nothing_below_knees, side_swap, thighs_hidden, toes_unseen)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
+from .rescale import rescaled
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, feet_carried,
                            kneelers_toes, size_prior, standing_counts, standing_legs,
                            toe_vertices, unseen_feet_on_kneeling_legs)
@@ -73,11 +74,6 @@ GRAPH_TERMS = (*MESH_TERMS, "self_penetration", "temporal")
 POSTURE_PRIORS = ("pose_prior", "bending")
 # Terms that shape a fit but never rank candidates (FitConfig.level_weight).
 UNRANKED = ("level",)
-# A rescale by at most this fraction refits the shape under its first-order expansion
-# (BodyModel.shape_expanded): a body rescaled by 3-8 % ends as near its scaled self as
-# refitted exactly (1.7-4.6 mm mean over its vertices, seen by a tilted camera), by 10 %
-# 9 mm against 6, by 20 % 32 against 11.
-EXPANDED_RESCALE = 0.08
 
 
 @dataclass
@@ -1060,43 +1056,18 @@ class Fitter:
 
     def _rescale(self, params: Params, scale: torch.Tensor, frames: int) -> None:
         """Scale each body about the camera centre by ``scale``, which keeps its
-        projection: its keypoints are scaled and its shape and root refitted to them, in
-        place (without skinning the mesh: half the cost per evaluation, and the scene
-        stages that follow refit the shape to the scene); a frame none of whose bodies
-        moves by 1 % is left as it is, and not posed. A frame whose rescales are all
-        within :data:`EXPANDED_RESCALE` expands the shape's rest quantities about the start
-        (the speed seed's 16 frames, scaled by 2.6-6.4 %: their keypoints end 1.1-3.9 mm
-        (RMS) from the scaled ones refitted exactly, 1.2-3.5 mm expanded, in 29 ms instead
-        of 54); each frame as its own rescales say, so that it is rescaled alike in any
-        batch (a batch refitted exactly for one frame's rescale spent 5 ms a frame more)."""
+        projection: its shape, root turn and translation refitted to its scaled keypoints
+        (:func:`rescale.rescaled`), in place, without skinning the mesh (the scene stages
+        that follow refit the shape to the scene); a frame none of whose bodies moves by
+        1 % is left as it is, and not posed. Each body is rescaled alone, so alike in any
+        batch."""
         moved = [rows for rows in lbfgs.row_groups(len(scale), frames)
                  if bool(((scale[rows] - 1).abs() >= 0.01).any())]
-        for expanded in (True, False):
-            groups = [rows for rows in moved if expanded ==
-                      (float((scale[rows] - 1).abs().max()) <= EXPANDED_RESCALE)]
-            if groups:
-                self._rescale_groups(params, scale, groups, expanded)
-
-    def _rescale_groups(self, params: Params, scale: torch.Tensor, groups: list[slice],
-                        expanded: bool) -> None:
-        """:meth:`_rescale` of the frames whose rows are ``groups``, posing their rows
-        alone; with the shape ``expanded`` or exact."""
-        body, defined = self.body, self.body.keypoint_mask
-        rows, packed_groups = lbfgs.packed(groups)
-        part = {k: v[rows].clone() for k, v in params.items()}
-        with torch.no_grad():
-            goal = body(part, vertices=False).keypoints[:, defined] * scale[rows, None, None]
-            part["transl"] *= scale[rows, None]
-
-        def objective() -> Callable[[slice], torch.Tensor]:
-            keypoints = body(part, vertices=False, spheres=False).keypoints[:, defined]
-            squared = ((keypoints - goal) ** 2).sum(-1)
-            return lambda group: squared[group].mean() * 1e4
-
-        with body.shape_expanded(part, False) if expanded else nullcontext():
-            self._minimise([part[n] for n in ["transl", "global_orient", *body.shape_group()]],
-                           objective, "rescale", packed_groups)
-        for name, value in part.items():
+        if not moved:
+            return
+        rows, _ = lbfgs.packed(moved)
+        fitted = rescaled(self.body, {k: v[rows] for k, v in params.items()}, scale[rows])
+        for name, value in fitted.items():
             params[name][rows] = value
 
     def _minimise(self, variables: list[torch.Tensor],

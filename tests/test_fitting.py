@@ -1423,29 +1423,30 @@ def test_scene_stages_that_throw_a_sunk_body_off_its_keypoints_are_undone(body):
 def test_rescale_scales_the_body_about_the_camera(body):
     """The rescale after a scale search refits shape and root to the scaled keypoints
     alone, without the mesh: the whole mesh must still come out scaled about the camera
-    centre (its projection kept), within a centimetre, seen by a tilted camera; refitted
-    exactly (by 10 % or more) or under the shape's expansion (5 %), within 4 mm."""
+    centre (its projection kept, within 3 px, 5 by 30 %), seen by a tilted camera: within
+    4 mm by 5 % (one piece), a centimetre by 10-12 % (two), 2.5 cm by 30 % (four; in one
+    piece, 5 cm)."""
     cam2world = tilted_camera()
     params = _posed_params(body, cam2world)
     with torch.no_grad():
         before = body(params).vertices[0]
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
-    for scale in (0.9, 0.95, 1.05, 1.12):
+    for scale, mean in ((0.9, 0.01), (0.95, 0.004), (1.05, 0.004), (1.12, 0.01), (1.3, 0.025)):
         scaled = {k: v.clone() for k, v in params.items()}
         fitter._rescale(scaled, torch.tensor([scale]), frames=1)
         with torch.no_grad():
             after = body(scaled).vertices[0]
         error = (after - scale * before).norm(dim=1)
-        assert float(error.mean()) < (0.01 if abs(scale - 1) > 0.08 else 0.004), scale
-        assert float(error.max()) < 0.03, (scale, error.max())
+        assert float(error.mean()) < mean, (scale, error.mean())
+        assert float(error.max()) < 3 * mean, (scale, error.max())
         pixels = (CAMERA.project(after[None]) - CAMERA.project(before[None]))[0].norm(dim=1)
-        assert float(pixels.mean()) < 3.0
+        assert float(pixels.mean()) < (3.0 if mean < 0.02 else 5.0), (scale, pixels.mean())
 
 
 def test_a_frames_rescale_is_the_same_in_any_batch(body):
-    """Each frame of a batch is rescaled as it is alone: one within the shape's expansion
-    (5 %) beside one refitted exactly (15 %) ends where it ends alone (the batch had
-    been refitted exactly for both, its first frame 1-3 mm elsewhere)."""
+    """Each frame of a batch is rescaled as it is alone: one rescaled in one piece (5 %)
+    beside one in two (15 %) ends where it ends alone (in two pieces with the other, it
+    ended 1.3 mm elsewhere)."""
     cam2world = tilted_camera()
     params = _posed_params(body, cam2world)
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
