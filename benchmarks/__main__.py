@@ -21,7 +21,7 @@ from prox_engine.config import load_config
 from prox_engine.output import atomic_write_text
 from prox_engine.pipeline import fit_recording
 
-from .evaluate import CONDITIONS, aggregate, evaluate_recording, truth_scene
+from .evaluate import CONDITIONS, aggregate, evaluate_recording, truth_meta, truth_scene
 from .generate import KINDS, make_benchmark
 
 SEQUENCE = "-sequence"  # suffix: the configuration in sequence mode
@@ -70,8 +70,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     started = time.perf_counter()
     recordings = make_benchmark(data, seed=seed, frames=frames, kinds=kinds, body=body)
     log(f"generated {len(recordings)} recordings in {time.perf_counter() - started:.0f} s")
-    kind_of = {rec: json.loads((data / "ground_truth" / rec / "meta.json").read_text())["kind"]
-               for rec in recordings}
+    kind_of = {rec: truth_meta(data, rec)["kind"] for rec in recordings}
     scenes = {rec: truth_scene(data, rec, sdf_dim) for rec in recordings}
     rows: dict[str, list[dict]] = {c: [] for c in configs}
     for config_name in configs:

@@ -36,10 +36,16 @@ def _mean_error_mm(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(a - b, axis=1).mean() * 1000)
 
 
+def truth_meta(data: Path, recording: str) -> dict:
+    """The generator's ``meta.json`` of a recording: its kind, person, true registration
+    and what the detector did to each frame."""
+    return json.loads((Path(data) / "ground_truth" / recording / "meta.json").read_text())
+
+
 def truth_scene(data: Path, recording: str, sdf_dim: int = 256) -> Scene:
     """The recording's scan at its true registration to the camera (the generator writes
     a slightly wrong one for the fitter, as real registrations are)."""
-    meta = json.loads((Path(data) / "ground_truth" / recording / "meta.json").read_text())
+    meta = truth_meta(data, recording)
     rec = Recording(Path(data), recording)
     return Scene.load(*load_scene_mesh(rec.scene_path), np.asarray(meta["cam2world"]),
                       rec.sdf_paths, dim=sdf_dim)
@@ -86,7 +92,7 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
     against the ground truth, ``scene`` being its :func:`truth_scene` (penetration and
     contacts of the fit and the truth are measured in the real scene)."""
     summary = json.loads((Path(fitted) / recording / "summary.json").read_text())
-    truth = json.loads((Path(data) / "ground_truth" / recording / "meta.json").read_text())
+    truth = truth_meta(data, recording)
     rows = []
     for frame in summary["frames"]:
         name = frame["frame"]
