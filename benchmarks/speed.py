@@ -29,7 +29,7 @@ from prox_engine.output import atomic_write_text
 from prox_engine.dataset import Recording
 from prox_engine.pipeline import fit_recording, load_scene
 
-from .evaluate import aggregate, evaluate_recording, truth_scene
+from .evaluate import aggregate, evaluate_recording, truth_meta, truth_scene
 from .generate import KINDS, make_benchmark
 
 
@@ -105,8 +105,11 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
                 return sum(statistics.median(r[key] for r in runs)
                            for runs in per_recording) / counted
 
-            errors = [e for rec in recordings for e in evaluate_recording(
-                data, rec, _fitted(out, name, mode), body, scenes[rec])]
+            errors = {rec: evaluate_recording(data, rec, _fitted(out, name, mode), body,
+                                              scenes[rec]) for rec in recordings}
+            per_kind: dict[str, list[dict]] = {}
+            for rec, rec_errors in errors.items():
+                per_kind.setdefault(truth_meta(data, rec)["kind"], []).extend(rec_errors)
             rows[(name, mode)] = {
                 "wall_seconds_per_frame": median("wall"),
                 "fit_seconds_per_frame": median("fit"),
@@ -114,7 +117,8 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
                 "ratio": median("units"),
                 "warm_started_seconds_per_frame": warm_started_seconds(
                     [f for runs in per_recording for r in runs for f in r["frames_seen"]]),
-                "pje_mm": aggregate(errors)["pje"]}
+                "pje_mm": aggregate(sum(errors.values(), []))["pje"],
+                "pje_mm_per_kind": {k: aggregate(e)["pje"] for k, e in per_kind.items()}}
             if mode.startswith("batch"):  # each round's single frames against its batches
                 rows[(name, mode)]["speed_up_per_round"] = [
                     sum(runs[r]["fit"] for runs in timed["single"])
@@ -164,6 +168,7 @@ def markdown(result: dict) -> str:
                  f"{r['wall_seconds_per_frame']:.2f} | {r['body_evaluations_per_frame']:.0f} | "
                  f"{r['ratio']:.0f} | {_seconds(r['warm_started_seconds_per_frame'])} | "
                  f"{r['pje_mm']:.1f} |\n")
+    text += _per_kind(result["rows"])
     for (name, mode), r in result["rows"].items():
         if "speed_up_per_round" in r:
             rounds = r["speed_up_per_round"]
@@ -171,6 +176,27 @@ def markdown(result: dict) -> str:
                      f"throughput (median of {len(rounds)} rounds: "
                      f"{', '.join(f'{x:.2f}' for x in rounds)}).\n")
     return text
+
+
+def _per_kind(rows: dict) -> str:
+    """PJE per kind in every configuration and mode, and per configuration, each other
+    mode's largest difference on a kind from its single frames (issue 14: none over
+    3 mm)."""
+    kinds = sorted({k for r in rows.values() for k in r["pje_mm_per_kind"]})
+    text = ("\n| kind | " + " | ".join(f"{name}, {mode}" for name, mode in rows) + " |\n"
+            + "|---" * (len(rows) + 1) + "|\n")
+    for kind in kinds:
+        text += (f"| {kind} | " + " | ".join(f"{r['pje_mm_per_kind'][kind]:.1f}"
+                                            for r in rows.values()) + " |\n")
+    text += "\n(PJE mm.)"
+    for (name, mode), r in rows.items():
+        single = rows.get((name, "single"))
+        if mode == "single" or single is None:
+            continue
+        gap, kind = max((r["pje_mm_per_kind"][k] - single["pje_mm_per_kind"][k], k)
+                        for k in kinds)
+        text += f" {name}, {mode}: at most {gap:+.1f} mm on a kind against single frames ({kind})."
+    return text + "\n"
 
 
 def _seconds(value: float | None) -> str:

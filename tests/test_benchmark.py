@@ -270,7 +270,9 @@ def test_speed_benchmark_divides_each_fit_by_the_unit_measured_around_it(tmp_pat
 def test_speed_benchmark_fits_the_modes_in_turn_round_by_round(tmp_path, body):
     """With ``rounds``, every recording is fitted that many times in each mode, the modes
     in turn (the unit measured after each fit), and a batch's throughput against single
-    frames is given per round: the last round's is that of the fits it left on disk."""
+    frames is given per round: the last round's is that of the fits it left on disk. PJE
+    is also given per kind, with each mode's largest difference from single frames on a
+    kind (issue 14's 3 mm)."""
     import json
 
     from benchmarks.speed import markdown, run
@@ -284,3 +286,10 @@ def test_speed_benchmark_fits_the_modes_in_turn_round_by_round(tmp_path, body):
     assert len(speed_up) == 2
     assert speed_up[-1] == pytest.approx(seconds["single"] / seconds["batch2"])
     assert "x single frames' throughput (median of 2 rounds" in markdown(result)
+    rows = result["rows"]
+    for mode in ("single", "sequence", "batch 2"):  # one kind: its PJE is the overall one
+        assert rows[("rgb", mode)]["pje_mm_per_kind"] == {
+            "sit": pytest.approx(rows[("rgb", mode)]["pje_mm"])}
+    gap = rows[("rgb", "batch 2")]["pje_mm"] - rows[("rgb", "single")]["pje_mm"]
+    assert f"rgb, batch 2: at most {gap:+.1f} mm on a kind against single frames (sit)" in (
+        markdown(result))
