@@ -70,6 +70,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         return units["free_shape"][-1]
 
     scenes = {rec: truth_scene(data, rec, sdf_dim) for rec in recordings}
+    kind_of = {rec: truth_meta(data, rec)["kind"] for rec in recordings}
     for rec in recordings:  # the fitter's SDFs, cached on disk before anything is timed
         load_scene(Recording(data, rec), sdf_dim)
     unit_before = measure_unit()  # right before the first fit
@@ -109,7 +110,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
                                               scenes[rec]) for rec in recordings}
             per_kind: dict[str, list[dict]] = {}
             for rec, rec_errors in errors.items():
-                per_kind.setdefault(truth_meta(data, rec)["kind"], []).extend(rec_errors)
+                per_kind.setdefault(kind_of[rec], []).extend(rec_errors)
             rows[(name, mode)] = {
                 "wall_seconds_per_frame": median("wall"),
                 "fit_seconds_per_frame": median("fit"),
