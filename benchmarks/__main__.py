@@ -47,7 +47,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-side-refit" + SEQUENCE,
            "prox-no-floating-refit" + SEQUENCE,
            "prox-anchor-scale" + SEQUENCE, "prox-neighbour-size" + SEQUENCE,
-           "prox-absolute-temporal" + SEQUENCE,
+           "prox-absolute-temporal" + SEQUENCE, "prox-temporal-contact-only" + SEQUENCE,
            "prox-feet-tolerant" + SEQUENCE,
            "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}

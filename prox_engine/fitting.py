@@ -67,8 +67,9 @@ LIFT_MIN = 0.01
 SCENE_TERMS = ("penetration", "contact")
 MESH_TERMS = (*SCENE_TERMS, "depth")
 # Terms that read more of the body than its keypoints and pose (the mesh, the collision
-# spheres) or the previous frame's fit: a stage with any goes through autograd.
-GRAPH_TERMS = (*MESH_TERMS, "self_penetration", "temporal")
+# spheres): a stage with any goes through autograd. The temporal term reads only the
+# keypoints (and the previous frame's fit).
+GRAPH_TERMS = (*MESH_TERMS, "self_penetration")
 # Priors that measure how far a posture is from the model's rest pose, which the start
 # choice may leave out (FitConfig.start_choice_priors).
 POSTURE_PRIORS = ("pose_prior", "bending")
@@ -810,10 +811,12 @@ class Fitter:
         return terms
 
     def _keypoint_objective(self, stage: Stage, params: Params, free: list[str],
-                            target: torch.Tensor, held: _Held) -> KeypointObjective | None:
+                            target: torch.Tensor, held: _Held, previous: torch.Tensor | None
+                            ) -> KeypointObjective | None:
         """The objective of a stage that reads only the keypoints and the pose, the shape
         held, worked out without autograd (:mod:`keypoint_objective`) with what stays put
-        while it runs (``held``); None for any other stage, or a body model without a
+        while it runs (``held``) and, given the ``previous`` frame's keypoints, the temporal
+        term; None for any other stage, or a body model without a
         :meth:`BodyModel.keypoint_path`."""
         if (any(stage.weights.get(t, 0) > 0 for t in GRAPH_TERMS)
                 or set(free) & set(self.body.shape_group())):
@@ -831,10 +834,20 @@ class Fitter:
             if name not in held.fixed}
         fixed = sum(held.fixed.values(), torch.zeros(len(columns)))
 
+        temporal = stage.weights.get("temporal", 0) if previous is not None else 0
+        if temporal > 0:
+            columns = torch.cat([columns, torch.full_like(columns[:, :1], temporal)], 1)
+
         def posed(keypoints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return keypoint_terms.posed_values(keypoints, self.camera, target, held.weights,
-                                               cfg.data_rho, self.up, cfg.upright_rho,
-                                               cfg.level_rho, held.cut)
+            value, slope = keypoint_terms.posed_values(
+                keypoints, self.camera, target, held.weights, cfg.data_rho, self.up,
+                cfg.upright_rho, cfg.level_rho, held.cut)
+            if temporal > 0:
+                motion, motion_slope = losses.temporal_value_and_slope(
+                    keypoints, previous, cfg.temporal_about_root)
+                value = torch.cat([value, motion[:, None]], 1)
+                slope = torch.cat([slope, motion_slope[:, None]], 1)
+            return value, slope
 
         return KeypointObjective(path, free, posed, columns.float().numpy(), priors,
                                  fixed.float().numpy(), self._counted)
@@ -873,7 +886,7 @@ class Fitter:
             return objective
 
         terms = terms_at(params)
-        direct = self._keypoint_objective(stage, params, free, target, held)
+        direct = self._keypoint_objective(stage, params, free, target, held, previous)
         expanded = (self.body.shape_expanded(params, mesh)
                     if set(self.body.shape_group()) & set(free)
                     else nullcontext(lambda rows: None))

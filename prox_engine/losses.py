@@ -173,7 +173,26 @@ def temporal(out: BodyOutput, previous: torch.Tensor | None,
     body's travel."""
     if previous is None:
         return out.keypoints.new_zeros(out.keypoints.shape[0])
-    motion = out.keypoints[:, BODY] - previous[:, BODY]
+    return (_motion(out.keypoints, previous, about_root) ** 2).sum((1, 2))
+
+
+def temporal_value_and_slope(keypoints: torch.Tensor, previous: torch.Tensor,
+                             about_root: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`temporal` of posed ``keypoints`` (B, K, 3) and its gradient in them (B, K, 3),
+    without autograd (for :class:`keypoint_objective.KeypointObjective`)."""
+    motion = _motion(keypoints, previous, about_root)
+    slope = torch.zeros_like(keypoints)
+    slope[:, BODY] = 2 * motion
+    if about_root:  # the mid-hip's own motion was taken from every keypoint's
+        slope[:, MID_HIP] -= 2 * motion.sum(1)
+    return (motion ** 2).sum((1, 2)), slope
+
+
+def _motion(keypoints: torch.Tensor, previous: torch.Tensor, about_root: bool
+            ) -> torch.Tensor:
+    """(B, 25, 3) the body keypoints' motion from ``previous``, about the mid-hip's with
+    ``about_root``."""
+    motion = keypoints[:, BODY] - previous[:, BODY]
     if about_root:
         motion = motion - motion[:, MID_HIP:MID_HIP + 1]
-    return (motion ** 2).sum((1, 2))
+    return motion

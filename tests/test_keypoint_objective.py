@@ -1,5 +1,6 @@
 """A keypoint stage's objective worked out without autograd is the autograd objective: the
-same rows' sums and gradients, under a tilted, rolled, off-centre camera."""
+same rows' sums and gradients, under a tilted, rolled, off-centre camera, with and without
+a previous frame's fit (sequence mode's temporal term)."""
 from __future__ import annotations
 
 import numpy as np
@@ -16,10 +17,11 @@ from prox_engine.keypoints import ANKLES, FEET, KNEES
 from .test_fitting import CAMERA, _posed_params, floor_scene, tilted_camera
 
 FREE = ["transl", "global_orient", "body_pose", "hand_pose"]
-# a keypoint stage with every prior, the shape's held (a warm-started frame's)
+# a keypoint stage with every prior, the shape's held, and the temporal term that a
+# warm-started frame's has
 STAGE = Stage("final", {"body": 1.0, "hands": 1.0, "pose_prior": 1.0, "bending": 3.0,
-                        "hand_prior": 5.0, "shape": 3.0}, optimize_shape=False,
-              optimize_hands=True)
+                        "hand_prior": 5.0, "shape": 3.0, "temporal": 300.0},
+              optimize_shape=False, optimize_hands=True)
 
 
 def _rows(body, cam2world: np.ndarray) -> tuple[dict[str, torch.Tensor], torch.Tensor,
@@ -50,21 +52,37 @@ def _rows(body, cam2world: np.ndarray) -> tuple[dict[str, torch.Tensor], torch.T
     return params, target, conf
 
 
-def test_the_direct_objective_is_the_autograd_objective(body):
+def _previous(body, params: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The keypoints of ``params``' bodies moved: every row's pose and root turned a
+    little and shifted 10 cm, as a neighbouring frame's fit would be."""
+    generator = torch.Generator().manual_seed(5)
+    moved = {name: value.detach().clone() for name, value in params.items()}
+    for name in ("global_orient", "body_pose"):
+        moved[name] += 0.05 * torch.randn(moved[name].shape, generator=generator)
+    moved["transl"] += torch.tensor([0.1, 0.0, 0.05])
+    with torch.no_grad():
+        return body(moved, vertices=False).keypoints
+
+
+@pytest.mark.parametrize("sequence", [False, True])
+def test_the_direct_objective_is_the_autograd_objective(body, sequence):
     cam2world = tilted_camera()
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
     params, target, conf = _rows(body, cam2world)
     assert bool(conf[1, KNEES].gt(0).all())  # the second body's legs are cut off
+    previous = _previous(body, params) if sequence else None
     for name in FREE:
         params[name].requires_grad_(True)
     direct = fitter._keypoint_objective(STAGE, params, FREE, target,
-                                        fitter._held(STAGE, params, conf, FREE))
+                                        fitter._held(STAGE, params, conf, FREE), previous)
     assert isinstance(direct, KeypointObjective)
     rows, grads = direct.evaluate()
 
-    terms = fitter._terms(STAGE, params, target, conf, [None] * 3, None, FREE)(
+    terms = fitter._terms(STAGE, params, target, conf, [None] * 3, previous, FREE)(
         body(params, vertices=False, spheres=False))
-    for name in ("upright", "level", "plumb_shins", "shape", "hand_prior", "bending"):
+    assert ("temporal" in terms) == sequence
+    for name in ("upright", "level", "plumb_shins", "shape", "hand_prior", "bending",
+                 *(["temporal"] if sequence else [])):
         assert bool((terms[name] != 0).any()), name  # every term takes part
     total = torch.stack(list(terms.values())).sum(0)
     expected = torch.autograd.grad(total.sum(), [params[n] for n in FREE])
@@ -75,10 +93,10 @@ def test_the_direct_objective_is_the_autograd_objective(body):
                                    atol=1e-5 * float(want.abs().max()), err_msg=name)
 
 
-@pytest.mark.parametrize("term", ["penetration", "contact", "self_penetration", "temporal",
-                                  "depth", "shape free"])
+@pytest.mark.parametrize("term", ["penetration", "contact", "self_penetration", "depth",
+                                  "shape free"])
 def test_stages_that_read_more_than_keypoints_and_pose_go_through_autograd(body, term):
-    """The mesh, the collision spheres, the previous frame or a free shape: autograd."""
+    """The mesh, the collision spheres or a free shape: autograd."""
     cam2world = tilted_camera()
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
     params, target, conf = _rows(body, cam2world)
@@ -86,6 +104,6 @@ def test_stages_that_read_more_than_keypoints_and_pose_go_through_autograd(body,
     weights = dict(STAGE.weights) | ({} if term == "shape free" else {term: 1.0})
     stage = Stage("s", weights)
     assert fitter._keypoint_objective(stage, params, free, target,
-                                      fitter._held(stage, params, conf, free)) is None
+                                      fitter._held(stage, params, conf, free), None) is None
     assert fitter._keypoint_objective(STAGE, params, FREE, target,
-                                      fitter._held(STAGE, params, conf, FREE)) is not None
+                                      fitter._held(STAGE, params, conf, FREE), None) is not None
