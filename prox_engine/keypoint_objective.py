@@ -19,9 +19,10 @@ from .lbfgs import Direct
 
 
 class KeypointObjective(Direct):
-    """Per row, the keypoint terms' four values (data, upright trunk, level trunk, plumb
-    shins, from ``posed``: keypoints -> values (B, 4) and slopes (B, 4, K, 3)) weighed by
-    ``columns`` (B, 4), plus the ``priors`` of the ``path`` (name -> weight), plus
+    """Per row, the keypoint terms' values (data, upright trunk, level trunk, plumb shins
+    and, in a warm-started frame, the temporal term; from ``posed``: keypoints -> values
+    (B, C) and slopes (B, C, K, 3)) weighed by ``columns`` (B, C), plus the ``priors`` of
+    the ``path`` (name -> weight), plus
     ``fixed`` (B,): the terms that do not move in this stage. Gradients in the ``free``
     parameters; ``count`` is told the rows of each evaluation."""
 
