@@ -10,12 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from PIL import Image
 
+from benchmarks.__main__ import CONFIGS, SEQUENCE
 from benchmarks.evaluate import procrustes
 from benchmarks import generate
 from benchmarks.generate import ground_truth_check, make_benchmark
 from benchmarks.staging import KNEELING, kneeling, stage_legup
+from prox_engine.config import CONFIG_DIR
 from prox_engine.dataset import Recording, load_calibration, load_depth_camera
 from prox_engine.depth import load_depth_points
 from prox_engine.keypoints import FEET, KNEES, load_keypoints
@@ -170,6 +173,18 @@ def test_small_benchmark_prox_beats_rgb(tmp_path):
     assert sum(counts.values()) == prox["frames"], counts
     assert all(f"### Detector: {name} ({n} of {prox['frames']} frames)" in table
                for name, n in counts.items())
+
+
+def test_every_variant_of_prox_has_a_benchmark_row_in_the_mode_it_changes():
+    """A variant missing from the benchmark's list gets no ablation row, and one that
+    changes only sequence mode (its settings all sequence_, anchor_ or temporal_ ones)
+    fitted in single frames gets a row identical to prox's."""
+    for path in sorted(CONFIG_DIR.glob("prox-*.yaml")):
+        settings = set(yaml.safe_load(path.read_text())) - {"base", "description"}
+        sequence_only = all(s.startswith(("sequence_", "anchor_", "temporal_"))
+                            for s in settings)
+        assert path.stem in CONFIGS or path.stem + SEQUENCE in CONFIGS, path.name
+        assert not sequence_only or path.stem + SEQUENCE in CONFIGS, path.name
 
 
 def test_compare_counts_the_frames_a_change_moved_in_millimetres(tmp_path):
