@@ -1,7 +1,9 @@
 """Where the time goes: per configuration and mode (single-frame, sequence, batched), the
 seconds and body-model evaluations per frame, and the seconds per frame divided by the time
 of one body forward+backward measured on the same machine in the same run (a ratio that
-does not depend on the machine), with the accuracy (PJE) to show nothing was lost. A
+moves far less between machines than seconds do, though not nothing: single frames 55 on
+one CPU, 63-66 on another 1.6 times slower), with the accuracy (PJE) to show nothing was
+lost. A
 shared machine's speed drifts by a third within a minute, so the unit is measured before
 and after each recording's fit, and each fit is divided by the mean of the two; the modes
 are fitted in turn, recording by recording, and with ``--rounds`` each recording several
