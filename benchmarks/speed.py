@@ -3,9 +3,8 @@ seconds and body-model evaluations per frame, and the seconds per frame divided 
 of one body forward+backward measured on the same machine in the same run (a ratio that
 moves far less between machines than seconds do, though not nothing: single frames 55 on
 one CPU, 63-66 on another 1.6 times slower), with the accuracy (PJE) to show nothing was
-lost. A
-shared machine's speed drifts by a third within a minute, so the unit is measured before
-and after each recording's fit, and each fit is divided by the mean of the two; the modes
+lost. A shared machine's speed drifts by a third within a minute, so the unit is measured
+before and after each recording's fit, and each fit is divided by the mean of the two; the modes
 are fitted in turn, recording by recording, and with ``--rounds`` each recording several
 times, its seconds the median (batches' throughput against single frames is also given
 round by round). In sequence mode also the seconds of the frames fitted from their
