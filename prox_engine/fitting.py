@@ -14,6 +14,7 @@ import torch
 
 from . import keypoint_terms, lbfgs, losses
 from .body.base import BodyModel, BodyOutput, Params, VertexSubset
+from .body.by_frame import FRAME, by_frame
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
@@ -327,6 +328,9 @@ class Fitter:
             labels = self._closest_labelling(target, conf, previous_keypoints)
             stages = [self.config.stages[i] for i in self.config.sequence_stages]
             frozen_shape = True
+        # each row's frame: what mixes rows is worked out frame by frame (body.by_frame)
+        params[FRAME] = torch.arange(len(frames)).repeat_interleave(
+            len(params["transl"]) // len(frames))
         # Rows per frame fitted side by side (starts, then arm restarts, then leg
         # restarts), and when and how each frame keeps its best row: the scene's cost
         # takes part for starts and legs, the posture priors for restarts (for starts as
@@ -433,7 +437,8 @@ class Fitter:
         stage_evaluations["output"] = self.evaluations - before
         elapsed = (time.perf_counter() - began) / len(frames)
         return [FitResult(
-            name=f.name, params={k: v[i:i + 1].detach().clone() for k, v in params.items()},
+            name=f.name, params={k: v[i:i + 1].detach().clone() for k, v in params.items()
+                                 if k != FRAME},
             vertices=out.vertices[i].detach(), keypoints=out.keypoints[i].detach(),
             losses={k: float(v[i]) for k, v in final.items()}, seconds=elapsed,
             stage_seconds={k: v / len(frames) for k, v in stage_seconds.items()},
@@ -583,9 +588,12 @@ class Fitter:
         turns = [i for i, u in enumerate(useful) if u.any()]
         if not turns:
             return []
-        count = len(kp)  # every turn's restarts posed at once, one row group each
-        params = {k: v.repeat(len(turns), *[1] * (v.dim() - 1)) for k, v in rows.params.items()}
-        goal = torch.cat([goals[i] for i in turns])
+        # only each frame's own worthwhile turns are posed, all at once, one row group
+        # each: a frame's rows are those it would have alone
+        which = torch.stack([useful[i] for i in turns])  # (turns, rows)
+        turn, row = which.nonzero(as_tuple=True)
+        params = {k: v[row] for k, v in rows.params.items()}
+        goal = torch.stack([goals[i] for i in turns])[turn, row]
 
         distance = goal_distance(goal, BODY, 1e4)
         path = body.keypoint_path(params)
@@ -609,11 +617,15 @@ class Fitter:
             missed = (body(params, vertices=False).keypoints[:, BODY] - goal).norm(dim=-1)
         restarts = []
         for n, index in enumerate(turns):
-            rows_of_turn = slice(n * count, (n + 1) * count)
-            tried = useful[index] & (missed[rows_of_turn].max(1).values < reach[index])
+            posed = turn == n
+            within = torch.zeros(len(kp), dtype=torch.bool)
+            within[row[posed]] = missed[posed].max(1).values < reach[index]
+            tried = useful[index] & within
             if bool(tried.any()):
-                restarts.append(({k: v[rows_of_turn].detach().clone()
-                                  for k, v in params.items()}, tried))
+                turned = {k: v.detach().clone() for k, v in rows.params.items()}
+                for k, v in params.items():
+                    turned[k][row[posed]] = v[posed].detach()
+                restarts.append((turned, tried))
         return restarts
 
     def _hidden_leg_postures(self, rows: _Rows, stage: Stage) -> _Rows:
@@ -877,11 +889,12 @@ class Fitter:
                     free, self._held(stage, rows_params, conf[rows], free, plumb))
             return lambda: terms_of(self.body(rows_params, vertices=mesh, spheres=spheres))
 
-        def objective_of(terms: Callable[[], dict[str, torch.Tensor]]) -> lbfgs.Objective:
+        def objective_of(terms: Callable[[], dict[str, torch.Tensor]],
+                         frames: torch.Tensor | None) -> lbfgs.Objective:
             def objective() -> Callable[[slice], torch.Tensor]:
                 # the terms summed once for every row, then per group: each operation on
                 # the way costs about 10 us forward and back, for some 600 evaluations
-                total = torch.stack(list(terms().values())).sum(0)
+                total = _row_totals(list(terms().values()), frames)
                 return lambda rows: total[rows].sum()
             return objective
 
@@ -895,9 +908,10 @@ class Fitter:
                 kept = {k: v[rows].detach().clone() for k, v in params.items()}
                 narrow_shape(rows)
                 return ([kept[n].requires_grad_(True) for n in free],
-                        objective_of(terms_at(kept, rows)))
+                        objective_of(terms_at(kept, rows), kept.get(FRAME)))
 
-            self._minimise([params[n] for n in free], direct or objective_of(terms),
+            self._minimise([params[n] for n in free],
+                           direct or objective_of(terms, params.get(FRAME)),
                            stage.name, groups, stage.max_iter,
                            stage.max_calls or self.config.max_calls, self.config.ftol,
                            None if direct else narrow)
@@ -1173,3 +1187,9 @@ class Fitter:
         best = torch.stack(costs).argmin(0)
         return [labellings[int(b)] for b in best]
 
+
+def _row_totals(terms: list[torch.Tensor], frames: torch.Tensor | None) -> torch.Tensor:
+    """(B,) the sum of the terms (each (B,)) of each row, ``frames`` (B,) the rows' frames:
+    a sum down a column of (terms, rows) runs in another order for one row than for
+    several, so each frame's rows are summed as the frame alone would have them."""
+    return by_frame(lambda values: values.T.sum(0), frames, torch.stack(terms).T)

@@ -521,8 +521,8 @@ def test_a_batch_fits_each_frame_from_its_own_start_and_labelling(body):
     """``Fitter.fit`` takes a start per frame (None: the choice's) and which frames to fit
     with the keypoints labelled as detected: batched so, a frame the detector swapped the
     legs of (whose fit alone takes them as swapped) keeps the detector's labels, another
-    goes on from the start it was given, and each ends, up to the rounding of batched
-    arithmetic, as it does fitted alone so."""
+    goes on from the start it was given, and each ends exactly as it does fitted alone
+    so."""
     from prox_engine.keypoints import side_swap
 
     cam2world = tilted_camera()
@@ -540,9 +540,28 @@ def test_a_batch_fits_each_frame_from_its_own_start_and_labelling(body):
     assert both[1].start == alone[1].start == 1
     assert both[0].start == alone[0].start
     for fit, single in zip(both, alone):
-        assert float((fit.vertices - single.vertices).norm(dim=1).max()) < 0.005
+        assert torch.equal(fit.vertices, single.vertices)
     with pytest.raises(ValueError, match="one of each per frame"):
         fitter.fit([swapped, turned], start=[None])
+
+
+def test_prox_fits_each_frame_of_a_batch_bit_for_bit_as_alone(body):
+    """Through every stage of `prox` (starts and their choice, arm and leg restarts, the
+    scale search and rescale, the scene stages with the shape free), each frame of a batch
+    ends exactly where it ends fitted alone: what mixes a batch's rows is worked out frame
+    by frame (body.by_frame). Before, these frames ended 0.8-2.0 mm from their fits alone,
+    and over a benchmark seed's recordings a kneeler 72 mm off alone was 531 mm off in its
+    batch."""
+    cam2world = tilted_camera()
+    seated = body(_posed_params(body, cam2world, "sitting")).keypoints[0, :25]
+    frames = [frame_of(seated.detach()),
+              *(frame_of(standing_person(body, cam2world, yaw=yaw)[1]) for yaw in (0.5, -0.8))]
+    fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
+    for frame, batched in zip(frames, fitter.fit(frames)):
+        alone = fitter.fit([frame])[0]
+        assert torch.equal(alone.vertices, batched.vertices)
+        assert alone.params.keys() == batched.params.keys()
+        assert all(torch.equal(alone.params[k], batched.params[k]) for k in alone.params)
 
 
 def _scene_over_nothing(cam2world: np.ndarray) -> Scene:

@@ -28,6 +28,7 @@ from .anchored_points import AnchoredPoints
 from .anny_keypoints import AnnyKeypointPath
 from .anny_kinematics import AnnySkeleton
 from .base import BodyModel, BodyOutput, KeypointPath, Params, VertexSubset, limit_excess
+from .by_frame import FRAME, by_frame
 from .shape_prior import PhenotypePrior
 from .skinning import Binding, linear_blend_skinning
 
@@ -427,11 +428,13 @@ class AnnyBody(BodyModel):
     def rest_height(self, params: Params) -> torch.Tensor:
         """The rest skeleton's span along the up axis: its bone heads are linear in the
         phenotype's coefficients, so no pose (0.1 ms instead of 5 for the mesh)."""
-        coeffs = self.phenotype_coefficients(torch.sigmoid(params["shape"].detach()))
-        heads = self.rest_sizes[0]
-        up = (self.rest_template[:heads] + coeffs @ self.rest_basis[:, :heads]).view(
-            len(coeffs), -1, 3) @ self.up_axis()
-        return up.max(1).values - up.min(1).values
+        def height(shape: torch.Tensor) -> torch.Tensor:
+            coeffs = self.phenotype_coefficients(torch.sigmoid(shape))
+            heads = self.rest_sizes[0]
+            up = (self.rest_template[:heads] + coeffs @ self.rest_basis[:, :heads]).view(
+                len(coeffs), -1, 3) @ self.up_axis()
+            return up.max(1).values - up.min(1).values
+        return by_frame(height, params.get(FRAME), params["shape"].detach())
 
     def forward_axis(self) -> torch.Tensor:
         return torch.tensor([0.0, -1.0, 0.0])
@@ -537,8 +540,9 @@ class AnnyBody(BodyModel):
         """Within it, a free shape's rest quantities (bone poses and offsets, keypoint
         anchors, the rest vertices of ``vertices``) are their first-order expansion about
         the shape of ``params`` (B, 6), one per row, its slopes central differences
-        (:data:`SHAPE_NUDGE` each way along each logit) found for every row in one
-        batched forward: a forward and backward on the scene terms' vertices then costs
+        (:data:`SHAPE_NUDGE` each way along each logit) found for each frame's rows in
+        one batched forward (:func:`by_frame`): a forward and backward on the scene
+        terms' vertices then costs
         3.0 ms instead of 7.8 (2.5 frozen), for 5 ms an expansion (26 for 8 rows;
         forward-mode autograd took 14 and 74, and gave gradients as near the model's). A
         scene stage moves the logits by 0.1-0.2, where the expansion is within half a
@@ -552,26 +556,32 @@ class AnnyBody(BodyModel):
             return (*(values[k] for k in _EXPANDED),
                     self.phenotype_coefficients(torch.sigmoid(shape)))
 
-        rows, size = len(base), base.shape[1]
-        nudge = torch.eye(size) * SHAPE_NUDGE  # each row nudged along each logit, both ways
-        nudged = torch.cat([base, (base[:, None] + nudge).flatten(0, 1),
-                            (base[:, None] - nudge).flatten(0, 1)])
-        values = skeleton(nudged)
-        *at, coeffs = (v[:rows] for v in values)
-        *slopes, coeff_slope = (  # (B, 6, n): central differences
-            (v[rows:rows + rows * size] - v[rows + rows * size:]).reshape(rows, size, -1)
-            / (2 * SHAPE_NUDGE) for v in values)
-        if subset is not None:
-            blend = subset.data["blendshapes"]  # (C, V, 3)
-            at.append(subset.data["template"] + torch.einsum("bc,cvd->bvd", coeffs, blend))
-            slopes.append(coeff_slope @ blend.flatten(1))
-        slopes = [s.contiguous() for s in slopes]
+        def expansion(base: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+            rows, size = len(base), base.shape[1]
+            nudge = torch.eye(size) * SHAPE_NUDGE  # each row nudged along each logit, both ways
+            nudged = torch.cat([base, (base[:, None] + nudge).flatten(0, 1),
+                                (base[:, None] - nudge).flatten(0, 1)])
+            values = skeleton(nudged)
+            *at, coeffs = (v[:rows] for v in values)
+            *slopes, coeff_slope = (  # (B, 6, n): central differences
+                (v[rows:rows + rows * size] - v[rows + rows * size:]).reshape(rows, size, -1)
+                / (2 * SHAPE_NUDGE) for v in values)
+            if subset is not None:
+                blend = subset.data["blendshapes"]  # (C, V, 3)
+                at.append(subset.data["template"] + torch.einsum("bc,cvd->bvd", coeffs, blend))
+                slopes.append(coeff_slope @ blend.flatten(1))
+            return at, [s.contiguous() for s in slopes]
+
+        frames = params.get(FRAME)
+        at, slopes = by_frame(expansion, frames, base)
 
         def narrow(rows: torch.Tensor) -> None:
             self._expansion = {"shape": base[rows], "subset": subset,
+                               "frames": None if frames is None else frames[rows],
                                "at": [v[rows] for v in at], "slope": [v[rows] for v in slopes]}
 
-        self._expansion = {"shape": base, "subset": subset, "at": at, "slope": slopes}
+        self._expansion = {"shape": base, "subset": subset, "frames": frames, "at": at,
+                           "slope": slopes}
         try:
             yield narrow
         finally:
@@ -590,43 +600,50 @@ class AnnyBody(BodyModel):
                 or shape.shape != found["shape"].shape):
             return None
         step = (shape - found["shape"])[:, None]  # (B, 1, 6)
-        values = [at + (step @ slope).view(at.shape)
+        values = [at + by_frame(torch.matmul, found["frames"], step, slope).view(at.shape)
                   for at, slope in zip(found["at"], found["slope"])]
         rest = dict(zip(_EXPANDED, values))
         if vertices is not None:
             rest[vertices] = values[-1]
         return rest
 
-    def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None, fresh: bool = False
-              ) -> dict[str, torch.Tensor]:
+    def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None, fresh: bool = False,
+              frames: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Rest bone poses, keypoint anchors and (for a ``vertices`` subset, under the
         subset as key) rest vertices for shape logits, as anny's ``cached`` bone
         orientation computes them; kept while the shape is frozen, or expanded about a
-        point (see :meth:`shape_expanded`), unless ``fresh``."""
+        point (see :meth:`shape_expanded`), unless ``fresh``; each frame's rows (``frames``)
+        worked out apart (:func:`by_frame`)."""
         expanded = None if fresh else self._expanded(shape, vertices)
         if expanded is not None:
             return expanded
         cached = None if fresh else self._rest_cache
         frozen = not shape.requires_grad
-        if not (frozen and cached is not None and torch.equal(cached["shape"], shape)):
+        if not (frozen and cached is not None and torch.equal(cached["shape"], shape)
+                and _same_frames(cached["frames"], frames)):
             model = self.model
-            coeffs = self.phenotype_coefficients(torch.sigmoid(shape))
-            heads, orientation, anchors = (self.rest_template + coeffs @ self.rest_basis).split(
-                self.rest_sizes, 1)
-            heads = heads.view(len(coeffs), -1, 3)
-            orientation = roma.special_procrustes(orientation.view(len(coeffs), -1, 3, 3))
-            if model.rest_orientation_refiner is not None:
-                orientation = model.rest_orientation_refiner(orientation, heads)
-            poses = roma.Rigid(orientation, heads).to_homogeneous()
-            cached = {"shape": shape.detach().clone(), "coeffs": coeffs, "bone_poses": poses,
-                      "offsets": self.skeleton.offsets(poses),
-                      "local_anchors": self._local_anchors(anchors.view(len(coeffs), -1, 3),
-                                                           poses)}
+
+            def rest(shape: torch.Tensor) -> dict[str, torch.Tensor]:
+                coeffs = self.phenotype_coefficients(torch.sigmoid(shape))
+                heads, orientation, anchors = (self.rest_template
+                                               + coeffs @ self.rest_basis).split(
+                    self.rest_sizes, 1)
+                heads = heads.view(len(coeffs), -1, 3)
+                orientation = roma.special_procrustes(orientation.view(len(coeffs), -1, 3, 3))
+                if model.rest_orientation_refiner is not None:
+                    orientation = model.rest_orientation_refiner(orientation, heads)
+                poses = roma.Rigid(orientation, heads).to_homogeneous()
+                return {"coeffs": coeffs, "bone_poses": poses,
+                        "offsets": self.skeleton.offsets(poses),
+                        "local_anchors": self._local_anchors(anchors.view(len(coeffs), -1, 3),
+                                                             poses)}
+            cached = {"shape": shape.detach().clone(), "frames": frames,
+                      **by_frame(rest, frames, shape)}
             if frozen and not fresh:
                 self._rest_cache = cached
         if vertices and vertices not in cached:
-            cached[vertices] = vertices.data["template"] + torch.einsum(
-                "bc,cvd->bvd", cached["coeffs"], vertices.data["blendshapes"])
+            cached[vertices] = by_frame(lambda coeffs: vertices.data["template"] + torch.einsum(
+                "bc,cvd->bvd", coeffs, vertices.data["blendshapes"]), frames, cached["coeffs"])
         return cached
 
     def _local_anchors(self, anchors: torch.Tensor, rest_poses: torch.Tensor) -> torch.Tensor:
@@ -655,7 +672,7 @@ class AnnyBody(BodyModel):
     def forward(self, params: Params, vertices: bool | VertexSubset = True,
                 spheres: bool = True) -> BodyOutput:
         subset = self._subset(vertices)
-        rest = self._rest(params["shape"], subset)
+        rest = self._rest(params["shape"], subset, frames=params.get(FRAME))
         rotvecs = torch.cat([params["global_orient"][:, None], params["body_pose"],
                              params["hand_pose"]], 1)
         batch = len(rotvecs)
@@ -740,3 +757,8 @@ def _largest_component(faces: np.ndarray, count: int) -> np.ndarray:
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(count, count))
     _, labels = connected_components(graph, directed=False)
     return labels == np.bincount(labels).argmax()
+
+
+def _same_frames(a: torch.Tensor | None, b: torch.Tensor | None) -> bool:
+    """Whether rows of frames ``a`` and ``b`` (see :func:`by_frame`) are grouped alike."""
+    return (a is None) == (b is None) and (a is None or torch.equal(a, b))

@@ -14,6 +14,7 @@ import torch
 
 from .anchored_points import _PLACE, _PLACE_GRAD
 from .base import KeypointPath, Params
+from .by_frame import FRAME
 from .bone_chain import _POSE, _POSE_GRAD
 
 if TYPE_CHECKING:
@@ -27,7 +28,7 @@ class AnnyKeypointPath(KeypointPath):
 
     def __init__(self, body: AnnyBody, params: Params) -> None:
         with torch.no_grad():
-            rest = body._rest(params["shape"], None)
+            rest = body._rest(params["shape"], None, frames=params.get(FRAME))
         self.chain, self.layout = body.skeleton.chain, body.anchored
         self.offsets = rest["offsets"].detach().float().contiguous()
         self.anchors = rest["local_anchors"].detach().float().contiguous()

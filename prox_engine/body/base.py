@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ..with_gradient import with_gradient
+from .by_frame import FRAME
 
 Params = dict[str, torch.Tensor]
 
@@ -196,6 +197,8 @@ class BodyModel(ABC, torch.nn.Module):
         names = self.shape_group()
         standing = self.init_params(len(params[names[0]]))
         standing.update({n: params[n].detach() for n in names})
+        if FRAME in params:
+            standing[FRAME] = params[FRAME]
         along = self(standing, spheres=False).vertices @ self.up_axis()
         return along.max(1).values - along.min(1).values
 
