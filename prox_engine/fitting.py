@@ -14,7 +14,7 @@ import torch
 
 from . import keypoint_terms, lbfgs, losses
 from .body.base import BodyModel, BodyOutput, Params, VertexSubset
-from .body.by_frame import FRAME, by_frame
+from .body.by_frame import FRAME, by_frame, one_frame
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
@@ -1191,5 +1191,8 @@ class Fitter:
 def _row_totals(terms: list[torch.Tensor], frames: torch.Tensor | None) -> torch.Tensor:
     """(B,) the sum of the terms (each (B,)) of each row, ``frames`` (B,) the rows' frames:
     a sum down a column of (terms, rows) runs in another order for one row than for
-    several, so each frame's rows are summed as the frame alone would have them."""
+    several, so each frame's rows are summed as the frame alone would have them (one row
+    a frame: along each row, which sums as one row's column does)."""
+    if not one_frame(frames) and len(frames.unique()) == len(frames):
+        return torch.stack(terms, 1).sum(1)
     return by_frame(lambda values: values.T.sum(0), frames, torch.stack(terms).T)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from prox_engine.body.by_frame import by_frame
+from prox_engine.body.by_frame import FrameRows, by_frame, frame_products
 
 
 def test_each_frames_rows_go_apart_in_order_and_come_back_in_place():
@@ -45,3 +45,23 @@ def test_a_product_and_its_gradient_round_as_each_frame_alone():
         alone_value, alone_grad = gradient(slice(row, row + 1), None)
         assert torch.equal(alone_value, value[row:row + 1])
         assert torch.equal(alone_grad, grad[row:row + 1])
+
+
+def test_frame_products_and_their_gradient_are_each_frames_alone():
+    """frame_products (the expansion's steps times each frame's own slopes, in one autograd
+    node) gives each frame's rows, and their gradient, exactly as that frame's product
+    alone, frames interleaved and of one or two rows."""
+    torch.manual_seed(1)
+    frames = torch.tensor([0, 1, 1, 2, 0])
+    framed = FrameRows(frames)
+    steps, slopes = torch.randn(5, 1, 6), torch.randn(5, 6, 843)
+    weights = torch.randn(5, 1, 843)
+    step = steps.clone().requires_grad_(True)
+    value = frame_products(step, framed, framed.split(slopes))
+    (value * weights).sum().backward()
+    for group in framed.groups:
+        alone = steps[group].clone().requires_grad_(True)
+        product = alone @ slopes[group].clone()
+        (product * weights[group].clone()).sum().backward()
+        assert torch.equal(product.detach(), value.detach()[group])
+        assert torch.equal(alone.grad, step.grad[group])

@@ -28,7 +28,7 @@ from .anchored_points import AnchoredPoints
 from .anny_keypoints import AnnyKeypointPath
 from .anny_kinematics import AnnySkeleton
 from .base import BodyModel, BodyOutput, KeypointPath, Params, VertexSubset, limit_excess
-from .by_frame import FRAME, by_frame
+from .by_frame import FRAME, FrameRows, by_frame, frame_products, one_frame, rows_alike
 from .shape_prior import PhenotypePrior
 from .skinning import Binding, linear_blend_skinning
 
@@ -551,17 +551,18 @@ class AnnyBody(BodyModel):
         subset = self._subset(vertices)
         base = params["shape"].detach().clone()  # the optimiser moves the shape in place
 
-        def skeleton(shape: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            values = self._rest(shape, None, fresh=True)
-            return (*(values[k] for k in _EXPANDED),
-                    self.phenotype_coefficients(torch.sigmoid(shape)))
+        def nudged(base: torch.Tensor) -> torch.Tensor:
+            """Each row of ``base``, then each nudged along each logit, then back."""
+            nudge = torch.eye(base.shape[1]) * SHAPE_NUDGE
+            return torch.cat([base, (base[:, None] + nudge).flatten(0, 1),
+                              (base[:, None] - nudge).flatten(0, 1)])
 
-        def expansion(base: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        def expansion(base: torch.Tensor, rest: dict[str, torch.Tensor]
+                      ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+            """The values and slopes of rows ``base`` from the rest quantities of their
+            nudged rows."""
             rows, size = len(base), base.shape[1]
-            nudge = torch.eye(size) * SHAPE_NUDGE  # each row nudged along each logit, both ways
-            nudged = torch.cat([base, (base[:, None] + nudge).flatten(0, 1),
-                                (base[:, None] - nudge).flatten(0, 1)])
-            values = skeleton(nudged)
+            values = [*(rest[k] for k in _EXPANDED), rest["coeffs"]]
             *at, coeffs = (v[:rows] for v in values)
             *slopes, coeff_slope = (  # (B, 6, n): central differences
                 (v[rows:rows + rows * size] - v[rows + rows * size:]).reshape(rows, size, -1)
@@ -573,15 +574,36 @@ class AnnyBody(BodyModel):
             return at, [s.contiguous() for s in slopes]
 
         frames = params.get(FRAME)
-        at, slopes = by_frame(expansion, frames, base)
+        if one_frame(frames):
+            at, slopes = expansion(base, self._rest_of(*self._shape_products(
+                torch.sigmoid(nudged(base)))))
+        else:  # each frame's nudged rows (13 a row: rows enough to round alike) in one
+            # batch, and what follows from them frame by frame
+            framed = FrameRows(frames)
+            bases = framed.split(base)
+            counts = [len(rows) * (1 + 2 * base.shape[1]) for rows in bases]
+            blocks = torch.cat([nudged(rows) for rows in bases])
+            rest = self._rest_of_logits(blocks, torch.arange(len(bases)).repeat_interleave(
+                torch.tensor(counts)))
+            parts = [expansion(rows, dict(zip(rest, values))) for rows, values in
+                     zip(bases, zip(*(v.split(counts) for v in rest.values())))]
+            at, slopes = ([framed.join([part[which][i] for part in parts])
+                           for i in range(len(parts[0][which]))] for which in (0, 1))
+
+        def expanded(rows: torch.Tensor | None) -> dict:
+            """The expansion of ``rows`` (None: all), each frame's slopes apart."""
+            kept = (frames if rows is None or frames is None else frames[rows])
+            picked = [v if rows is None else v[rows] for v in (base, *at, *slopes)]
+            shape, at_rows, slope_rows = picked[0], picked[1:1 + len(at)], picked[1 + len(at):]
+            framed = None if one_frame(kept) else FrameRows(kept)
+            return {"shape": shape, "subset": subset, "frames": framed, "at": at_rows,
+                    "slope": slope_rows if framed is None else [framed.split(v)
+                                                                for v in slope_rows]}
 
         def narrow(rows: torch.Tensor) -> None:
-            self._expansion = {"shape": base[rows], "subset": subset,
-                               "frames": None if frames is None else frames[rows],
-                               "at": [v[rows] for v in at], "slope": [v[rows] for v in slopes]}
+            self._expansion = expanded(rows)
 
-        self._expansion = {"shape": base, "subset": subset, "frames": frames, "at": at,
-                           "slope": slopes}
+        self._expansion = expanded(None)
         try:
             yield narrow
         finally:
@@ -600,8 +622,13 @@ class AnnyBody(BodyModel):
                 or shape.shape != found["shape"].shape):
             return None
         step = (shape - found["shape"])[:, None]  # (B, 1, 6)
-        values = [at + by_frame(torch.matmul, found["frames"], step, slope).view(at.shape)
-                  for at, slope in zip(found["at"], found["slope"])]
+        framed = found["frames"]
+        if framed is None:
+            values = [at + (step @ slope).view(at.shape)
+                      for at, slope in zip(found["at"], found["slope"])]
+        else:  # each frame's step times its own slopes, as the frame alone
+            values = [at + frame_products(step, framed, blocks).view(at.shape)
+                      for at, blocks in zip(found["at"], found["slope"])]
         rest = dict(zip(_EXPANDED, values))
         if vertices is not None:
             rest[vertices] = values[-1]
@@ -621,30 +648,45 @@ class AnnyBody(BodyModel):
         frozen = not shape.requires_grad
         if not (frozen and cached is not None and torch.equal(cached["shape"], shape)
                 and _same_frames(cached["frames"], frames)):
-            model = self.model
-
-            def rest(shape: torch.Tensor) -> dict[str, torch.Tensor]:
-                coeffs = self.phenotype_coefficients(torch.sigmoid(shape))
-                heads, orientation, anchors = (self.rest_template
-                                               + coeffs @ self.rest_basis).split(
-                    self.rest_sizes, 1)
-                heads = heads.view(len(coeffs), -1, 3)
-                orientation = roma.special_procrustes(orientation.view(len(coeffs), -1, 3, 3))
-                if model.rest_orientation_refiner is not None:
-                    orientation = model.rest_orientation_refiner(orientation, heads)
-                poses = roma.Rigid(orientation, heads).to_homogeneous()
-                return {"coeffs": coeffs, "bone_poses": poses,
-                        "offsets": self.skeleton.offsets(poses),
-                        "local_anchors": self._local_anchors(anchors.view(len(coeffs), -1, 3),
-                                                             poses)}
             cached = {"shape": shape.detach().clone(), "frames": frames,
-                      **by_frame(rest, frames, shape)}
+                      **self._rest_of_logits(shape, frames)}
             if frozen and not fresh:
                 self._rest_cache = cached
         if vertices and vertices not in cached:
             cached[vertices] = by_frame(lambda coeffs: vertices.data["template"] + torch.einsum(
                 "bc,cvd->bvd", coeffs, vertices.data["blendshapes"]), frames, cached["coeffs"])
         return cached
+
+    def _rest_of_logits(self, shape: torch.Tensor, frames: torch.Tensor | None
+                        ) -> dict[str, torch.Tensor]:
+        """:meth:`_rest_of` the phenotypes of shape logits (B, 6), each frame's rows
+        (``frames``) as the frame alone: the sigmoid frame by frame (its last elements
+        take a scalar path), and the blendshape products so too unless every frame has
+        rows enough to round alike in one product (:func:`rows_alike`); what follows from
+        the products works on each row (a bone at a time) and goes in one batch."""
+        if rows_alike(frames):
+            return self._rest_of(*self._shape_products(by_frame(torch.sigmoid, frames, shape)))
+        return self._rest_of(*by_frame(lambda rows: self._shape_products(torch.sigmoid(rows)),
+                                       frames, shape))
+
+    def _shape_products(self, phenotype: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The blendshape coefficients (B, C) of phenotypes (B, 6) in [0, 1], and the rest
+        skeleton's and keypoint anchors' values (B, n) they give (:meth:`_setup_rest_basis`)."""
+        coeffs = self.phenotype_coefficients(phenotype)
+        return coeffs, self.rest_template + coeffs @ self.rest_basis
+
+    def _rest_of(self, coeffs: torch.Tensor, rest: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The rest bone poses and offsets and keypoint anchors (see :meth:`_rest`) of
+        blendshape coefficients (B, C) and their products (:meth:`_shape_products`)."""
+        model = self.model
+        heads, orientation, anchors = rest.split(self.rest_sizes, 1)
+        heads = heads.view(len(coeffs), -1, 3)
+        orientation = roma.special_procrustes(orientation.view(len(coeffs), -1, 3, 3))
+        if model.rest_orientation_refiner is not None:
+            orientation = model.rest_orientation_refiner(orientation, heads)
+        poses = roma.Rigid(orientation, heads).to_homogeneous()
+        return {"coeffs": coeffs, "bone_poses": poses, "offsets": self.skeleton.offsets(poses),
+                "local_anchors": self._local_anchors(anchors.view(len(coeffs), -1, 3), poses)}
 
     def _local_anchors(self, anchors: torch.Tensor, rest_poses: torch.Tensor) -> torch.Tensor:
         """(B, pairs, 3) the keypoint anchors (a, h) in their bones' rest frames, P^-1 [a;
