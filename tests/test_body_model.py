@@ -286,7 +286,7 @@ def test_bone_chain_shares_one_set_of_offsets_and_handles_tiny_angles(body):
     rotvecs[:, 2] = 0.05 * torch.randn(3)
     rotvecs.requires_grad_(True)
     transl = torch.randn(3, 3).requires_grad_(True)
-    rest = body._rest(body.init_params(1)["shape"], None, fresh=True)
+    rest = body._rest(body.init_params(1)["shape"], None)
     shared = rest["offsets"].detach().clone().requires_grad_(True)
     copies = shared.detach().repeat(3, 1, 1).requires_grad_(True)
     weights = torch.randn(3, shared.shape[1], 4, 4)

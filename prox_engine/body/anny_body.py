@@ -540,10 +540,10 @@ class AnnyBody(BodyModel):
         """Within it, a free shape's rest quantities (bone poses and offsets, keypoint
         anchors, the rest vertices of ``vertices``) are their first-order expansion about
         the shape of ``params`` (B, 6), one per row, its slopes central differences
-        (:data:`SHAPE_NUDGE` each way along each logit) found for each frame's rows in
-        one batched forward (:func:`by_frame`): a forward and backward on the scene
-        terms' vertices then costs
-        3.0 ms instead of 7.8 (2.5 frozen), for 5 ms an expansion (26 for 8 rows;
+        (:data:`SHAPE_NUDGE` each way along each logit) found for every row in one
+        batched forward, each frame's rows as the frame alone (:func:`by_frame`): a
+        forward and backward on the scene terms' vertices then costs 3.0 ms instead of
+        7.8 (2.5 frozen), for 5 ms an expansion (26 for 8 rows;
         forward-mode autograd took 14 and 74, and gave gradients as near the model's). A
         scene stage moves the logits by 0.1-0.2, where the expansion is within half a
         millimetre of the model. It gives the function that narrows the expansion to some
@@ -575,8 +575,7 @@ class AnnyBody(BodyModel):
 
         frames = params.get(FRAME)
         if one_frame(frames):
-            at, slopes = expansion(base, self._rest_of(*self._shape_products(
-                torch.sigmoid(nudged(base)))))
+            at, slopes = expansion(base, self._rest_of_logits(nudged(base), None))
         else:  # each frame's nudged rows (13 a row: rows enough to round alike) in one
             # batch, and what follows from them frame by frame
             framed = FrameRows(frames)
@@ -634,23 +633,23 @@ class AnnyBody(BodyModel):
             rest[vertices] = values[-1]
         return rest
 
-    def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None, fresh: bool = False,
+    def _rest(self, shape: torch.Tensor, vertices: VertexSubset | None,
               frames: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Rest bone poses, keypoint anchors and (for a ``vertices`` subset, under the
         subset as key) rest vertices for shape logits, as anny's ``cached`` bone
         orientation computes them; kept while the shape is frozen, or expanded about a
-        point (see :meth:`shape_expanded`), unless ``fresh``; each frame's rows (``frames``)
-        worked out apart (:func:`by_frame`)."""
-        expanded = None if fresh else self._expanded(shape, vertices)
+        point (see :meth:`shape_expanded`); each frame's rows (``frames``) worked out as
+        the frame alone (:func:`by_frame`)."""
+        expanded = self._expanded(shape, vertices)
         if expanded is not None:
             return expanded
-        cached = None if fresh else self._rest_cache
+        cached = self._rest_cache
         frozen = not shape.requires_grad
         if not (frozen and cached is not None and torch.equal(cached["shape"], shape)
                 and _same_frames(cached["frames"], frames)):
             cached = {"shape": shape.detach().clone(), "frames": frames,
                       **self._rest_of_logits(shape, frames)}
-            if frozen and not fresh:
+            if frozen:
                 self._rest_cache = cached
         if vertices and vertices not in cached:
             cached[vertices] = by_frame(lambda coeffs: vertices.data["template"] + torch.einsum(
