@@ -46,7 +46,7 @@ class FrameRows:
 
 def rows_alike(frames: torch.Tensor | None) -> bool:
     """Whether every frame of ``frames`` has :data:`ALIKE_ROWS` rows or more."""
-    return frames is None or min(len(g) for g in FrameRows(frames).groups) >= ALIKE_ROWS
+    return frames is None or int(frames.unique(return_counts=True)[1].min()) >= ALIKE_ROWS
 
 
 def one_frame(frames: torch.Tensor | None) -> bool:
