@@ -1701,6 +1701,29 @@ def test_the_start_choice_leaves_out_the_posture_priors(body):
     assert without < 0.05 and counted > 0.06, (without, counted)
 
 
+def test_the_start_choice_counts_a_quarter_of_the_posture_priors(body):
+    """Two frames' pairs of starts, ranked by data term and posture priors (pose,
+    bending): a kneeling start (data 150, priors 40 + 60) against a crouch that fits the
+    keypoints a little better (120, 200 + 50), and a seated start (100, 100 + 50) against a
+    standing one (140, 15 + 5). Without the priors (`prox-start-without-priors`) the crouch
+    and the seated start are kept; with a quarter of them (`prox`), kneeling and seated;
+    with all of them (`prox-start-priors`), kneeling and standing."""
+    params = {k: v.repeat(2, *[1] * (v.dim() - 1)) for k, v in body.init_params(2).items()}
+    terms = {"data": torch.tensor([150.0, 120.0, 100.0, 140.0]),
+             "pose_prior": torch.tensor([40.0, 200.0, 100.0, 15.0]),
+             "bending": torch.tensor([60.0, 50.0, 50.0, 5.0])}
+
+    def kept(name: str) -> list[int]:
+        config = load_config(name)
+        fitter = Fitter(body, CAMERA, config, floor_scene(tilted_camera()))
+        return fitter._best_rows(params, torch.ones(4, 25), terms, [2, 2], by_scene=False,
+                                 priors=config.start_choice_priors)
+
+    assert kept("prox-start-without-priors") == [1, 2]
+    assert kept("prox") == [0, 2]
+    assert kept("prox-start-priors") == [0, 3]
+
+
 def test_the_start_choice_leaves_out_the_arms(body):
     """Two starts of a mean standing body seen by a tilted, rolled camera: one exact but
     for its right arm, raised far from its keypoints (an arm the start search left in a
