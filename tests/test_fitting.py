@@ -1682,11 +1682,12 @@ def test_sequence_mode_refits_a_frame_whose_chain_overrides_its_own_start_search
     assert "discarded_fit" not in kept.stage_evaluations
 
 
-def test_the_start_choice_leaves_out_the_posture_priors(body):
+def test_the_start_choice_keeps_an_exactly_seen_crouch(body):
     """A crouching mean body on the floor, exact keypoints, seen by a tilted, off-centre
-    camera: compared without the posture priors (pose, bending), which charge a crouch
-    more than an upright posture, the crouching start wins and the fit ends within 5 cm
-    a joint; counting them (`prox-start-priors`) keeps the other start, 8-9 cm off."""
+    camera: compared with a quarter of the posture priors (pose, bending), which charge a
+    crouch more than an upright posture, the crouching start wins and the fit ends within
+    5 cm a joint; counting all of them (`prox-start-priors`) keeps the other start, 8-9 cm
+    off."""
     cam2world = tilted_camera(position=(0.3, -3.0, 1.2), roll_deg=-10.0)
     scene = floor_scene(cam2world)
     params = _posed_params(body, cam2world, "crouching")
