@@ -130,11 +130,10 @@ class FitConfig:
     # hold the prior's mean body, so a start that meets the scene only scaled far from 1
     # asks for an unusually small or large person.
     start_choice_size: bool = False
-    # The weight of the posture priors (pose and bending) when the starts are compared
-    # (true: 1, false: 0). They measure how far a posture is from standing straight: a
-    # kneeling start paid for that about ten times what a seated one did for the same
-    # keypoints and scene; left out, a crouch on a low table beat kneeling on the floor.
-    start_choice_priors: float = 1.0
+    # Off, the starts are compared without the posture priors (pose and bending), which
+    # measure how far a posture is from standing straight: a kneeling start paid for that
+    # about ten times what a seated one did for the same keypoints and scene.
+    start_choice_priors: bool = True
     # Off, the starts are compared without the arms' keypoints (elbows, wrists, hands):
     # starts differ in their trunk and legs, and an arm one start left in a wrong minimum
     # (a reach seen from the front) is for the arm restarts, after the choice, to settle.

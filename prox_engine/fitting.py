@@ -109,13 +109,13 @@ class FitResult:
 class _Choice:
     """When each frame keeps one of its candidate rows (after the stage numbered
     ``after``, counting from 1) and by what (:meth:`Fitter._choose`): the objective,
-    with the posture priors times ``priors``, the arms' keypoints if ``arms`` and the feet's
+    with the posture priors if ``priors``, the arms' keypoints if ``arms`` and the feet's
     but in the frames ``feet_left_out`` ((frames,) bool; None: none), plus the scene's
     cost if ``by_scene``."""
 
     after: int
     by_scene: bool = True
-    priors: float = 1.0
+    priors: bool = True
     arms: bool = True
     feet_left_out: torch.Tensor | None = None
 
@@ -494,14 +494,14 @@ class Fitter:
 
     def _best_rows(self, params: Params, detected: torch.Tensor,
                    terms: dict[str, torch.Tensor],
-                   counts: list[int], by_scene: bool, priors: float = 1.0) -> list[int]:
+                   counts: list[int], by_scene: bool, priors: bool = True) -> list[int]:
         """Rows (one per frame) of the candidates, ``counts`` per frame (each frame's rows
-        consecutive), with the lowest objective (``terms``, the POSTURE_PRIORS weighted
-        by ``priors``) plus, ``by_scene`` with a scale search,
+        consecutive), with the lowest objective (``terms``; without the
+        POSTURE_PRIORS unless ``priors``) plus, ``by_scene`` with a scale search,
         ``start_scene_weight`` times how badly each can meet the scene at its best scale
         (the body joints ``detected`` (rows, 25) as :meth:`_scale_search` reads them)
         and, with ``start_choice_size``, the size prior at that scale."""
-        score = sum(v * priors if k in POSTURE_PRIORS else v for k, v in terms.items()
+        score = sum(v for k, v in terms.items()
                     if (priors or k not in POSTURE_PRIORS) and k not in UNRANKED)
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
             score = score + self.config.start_scene_weight * self._scene_costs(
@@ -673,7 +673,7 @@ class Fitter:
             data = self._data_term(stage, self.body(wide.params, vertices=False),
                                    wide.target, wide.conf)
         best = self._best_rows(wide.params, wide.detected, {"data": data}, counts,
-                               by_scene=True, priors=0.0)
+                               by_scene=True, priors=False)
         for frame, (row, group) in enumerate(zip(best, lbfgs.sized_groups(counts))):
             if row != group.start:
                 part = "shins" if shins[frame] else "legs"
