@@ -591,13 +591,15 @@ class AnnyBody(BodyModel):
 
         def expanded(rows: torch.Tensor | None) -> dict:
             """The expansion of ``rows`` (None: all), each frame's slopes apart."""
-            kept = (frames if rows is None or frames is None else frames[rows])
-            picked = [v if rows is None else v[rows] for v in (base, *at, *slopes)]
-            shape, at_rows, slope_rows = picked[0], picked[1:1 + len(at)], picked[1 + len(at):]
+            def pick(v: torch.Tensor) -> torch.Tensor:
+                return v if rows is None else v[rows]
+
+            kept = None if frames is None else pick(frames)
             framed = None if one_frame(kept) else FrameRows(kept)
-            return {"shape": shape, "subset": subset, "frames": framed, "at": at_rows,
-                    "slope": slope_rows if framed is None else [framed.split(v)
-                                                                for v in slope_rows]}
+            slope = [pick(v) for v in slopes]
+            return {"shape": pick(base), "subset": subset, "frames": framed,
+                    "at": [pick(v) for v in at],
+                    "slope": slope if framed is None else [framed.split(v) for v in slope]}
 
         def narrow(rows: torch.Tensor) -> None:
             self._expansion = expanded(rows)
