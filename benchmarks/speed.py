@@ -144,10 +144,12 @@ def _fitted(out: Path, config: str, mode: str) -> Path:
 
 
 def warm_started_seconds(frames: list[dict]) -> float | None:
-    """Mean seconds of the frames (summary.json entries) fitted from a neighbour alone:
-    neither fitted from scratch (an anchor, a start search) nor refitted; None if none."""
-    warm = [f["seconds"] for f in frames
-            if not {"initialise", "discarded_fit"} & set(f.get("profile", {}))]
+    """Mean seconds of the frames (summary.json entries) fitted from a neighbour: neither
+    the anchor nor refitted in the chain (a kept fit from scratch that carries its warm
+    fit's cost, ``warm_fit``, counts: the path of least motion fits every such frame
+    both ways); None if none."""
+    warm = [f["seconds"] for f in frames if "warm_fit" in f.get("profile", {})
+            or not {"initialise", "discarded_fit"} & set(f.get("profile", {}))]
     return sum(warm) / len(warm) if warm else None
 
 

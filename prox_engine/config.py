@@ -118,6 +118,11 @@ class FitConfig:
     # passes them on (seed 3's leg-up sitter, five frames 240 mm worse than single
     # frames). The start search runs only where the chain overrides the detector.
     sequence_label_check: bool = True
+    # Sequence mode also fits every frame from scratch, in batches of this many frames,
+    # and keeps, a window of as many frames at a time, each frame's fit on the path of
+    # least motion through its warm-started fit and its fit from scratch (motion_path,
+    # pipeline._Paths); 0: the chain's fits alone.
+    sequence_path_window: int = 0
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.

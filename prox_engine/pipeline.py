@@ -20,6 +20,7 @@ from .depth import load_depth_points
 from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
 from .keypoints import BODY, BODY_25, ankle_seen, load_keypoints
+from .motion_path import least_motion_path, motion
 from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, write_pickle
 from .registration import OFF, Registration, register_scan
 from .scene import Scene
@@ -113,10 +114,24 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
         search["evaluations"] += fitter.evaluations
         return labelling == ()
 
+    def written(pairs: list[tuple[Frame, FitResult]], failed: int) -> None:
+        """Write the frames' fits; count them and ``failed`` frames done."""
+        nonlocal done
+        for frame, result in pairs:
+            frames_summary.append(_write_frame(out, recording, frame, result, body, camera,
+                                               scene, config, sequence))
+        done += len(pairs) + failed
+        if progress and (pairs or failed):
+            progress(done, len(names), pairs[-1][0].name if pairs else failures[-1][0])
+
+    paths = (_Paths(fitter, config.sequence_path_window)
+             if sequence and config.sequence_path_window > 0 else None)
     for chain in (_chains(rec, names, config.anchor_seen,
                           as_detected if config.anchor_as_detected else None)
                   if sequence else [names]):
         previous = anchor  # a backward chain starts from the anchor frame's fit
+        if paths:
+            paths.before = anchor
         for start in range(0, len(chain), batch):
             frames = []
             for name in chain[start:start + batch]:
@@ -125,27 +140,28 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                 except InputError as exc:
                     failures.append((name, str(exc)))
                     previous = None  # do not warm-start across a gap
+            fresh = not (sequence and previous is not None)
+            results: list[FitResult] = []
             if frames:
                 try:
-                    results = (_fit_from(fitter, frames[0], previous, anchor or previous,
-                                         anchor_px)
-                               if sequence and previous is not None
-                               else _fit_fresh(fitter, frames))
+                    results = (_fit_fresh(fitter, frames) if fresh else
+                               _fit_from(fitter, frames[0], previous, anchor or previous,
+                                         anchor_px))
                 except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
                     failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
-                    results = []
                 if anchor is None and start == 0 and results and search["evaluations"]:
                     _charge(results[0], "anchor_search", search["seconds"],
                             search["evaluations"])
-                for frame, result in zip(frames, results):
-                    frames_summary.append(_write_frame(out, recording, frame, result, body,
-                                                       camera, scene, config, sequence))
                 previous = results[-1] if results else None
                 if anchor is None and start == 0 and previous is not None:
-                    anchor, anchor_px = previous, frames_summary[-1]["reprojection_error_px"]
-            done += len(chain[start:start + batch])
-            if progress:
-                progress(done, len(names), chain[min(start + batch, len(chain)) - 1])
+                    anchor, anchor_px = previous, metrics.reprojection_error(
+                        previous.keypoints, frames[-1].keypoints, camera, body.keypoint_mask,
+                        previous.swapped)
+            pairs = list(zip(frames, results))
+            failed = len(chain[start:start + batch]) - len(pairs)
+            written(paths.add(pairs, fresh) if paths else pairs, failed)
+        if paths:
+            written(paths.flush(), 0)
 
     order = {name: i for i, name in enumerate(names)}
     frames_summary.sort(key=lambda f: order[f["frame"]])
@@ -210,6 +226,65 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
         for b, other in zip(far, as_detected):
             results[b] = _kept_nearer(fitter, frames[b], results[b], far[b], other)
     return results
+
+
+class _Paths:
+    """Sequence mode's frames held until a window of them (FitConfig.sequence_path_window)
+    is in, then each fitted from scratch too, where its chain did not (:func:`_fit_fresh`,
+    the frames together: as single frames fit them), and handed back with the fit on the
+    path of least motion through each frame's two (:mod:`motion_path`), from the fit kept
+    for the frame before them (``before``: a chain's first frame has none, a backward
+    chain's the anchor's)."""
+
+    def __init__(self, fitter: Fitter, window: int) -> None:
+        self.fitter, self.window = fitter, window
+        self.before: FitResult | None = None
+        self.pending: list[tuple[Frame, FitResult, bool]] = []
+
+    def add(self, pairs: list[tuple[Frame, FitResult]], fresh: bool
+            ) -> list[tuple[Frame, FitResult]]:
+        """Hold the chain's fits ``pairs`` (``fresh``: fitted from scratch, as a single
+        frame); the frames and fits kept once a window is in, else none."""
+        self.pending += [(frame, result, fresh) for frame, result in pairs]
+        return self.flush() if len(self.pending) >= self.window else []
+
+    def flush(self) -> list[tuple[Frame, FitResult]]:
+        """The frames held and the fit kept for each, in order."""
+        pending, self.pending = self.pending, []
+        again = [i for i, (_, _, fresh) in enumerate(pending) if not fresh]
+        candidates = [[result] for _, result, _ in pending]
+        if again:
+            try:
+                for i, other in zip(again, _fit_fresh(self.fitter,
+                                                      [pending[i][0] for i in again])):
+                    candidates[i].append(other)
+            except (RuntimeError, ValueError) as exc:  # the chain's fits stand
+                for i in again:
+                    pending[i][1].events.append(f"sequence: no fit from scratch ({exc})")
+        before = None if self.before is None else self.before.vertices
+        path = least_motion_path([[c.vertices for c in cs] for cs in candidates], before)
+        kept = [cs[pick] for cs, pick in zip(candidates, path)]
+        for i, (cs, pick) in enumerate(zip(candidates, path)):
+            if len(cs) == 1:
+                continue
+            dropped = cs[1 - pick]
+            _charge(kept[i], "fresh_fit" if pick == 0 else "warm_fit", dropped.seconds,
+                    sum(dropped.stage_evaluations.values()))
+            if pick:  # a path that leaves the chain has a neighbour to leave it for
+                around = [f.vertices for f in [kept[i - 1] if i else self.before,
+                                               *kept[i + 1:i + 2]] if f is not None]
+                kept[i].events.append(
+                    "sequence: kept its fit from scratch, on the path of least motion (to "
+                    f"the fits kept around it {_moved(kept[i], around)} against the warm "
+                    f"fit's {_moved(dropped, around)})")
+        if kept:
+            self.before = kept[-1]
+        return [(frame, fit) for (frame, _, _), fit in zip(pending, kept)]
+
+
+def _moved(fit: FitResult, around: list[torch.Tensor]) -> str:
+    """How far a fit's body is from the fits ``around`` it (vertices): mean, in cm."""
+    return f"{100 * sum(motion(fit.vertices, v) for v in around) / len(around):.1f} cm"
 
 
 def _swapped_far(fitter: Fitter, frames: list[Frame], results: list[FitResult],

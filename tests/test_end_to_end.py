@@ -3,6 +3,7 @@ are the session fixture ``cli_fits``)."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -97,9 +98,10 @@ def test_every_frame_failing_is_a_failed_run(sitting_data, tmp_path):
     assert f"{REC}: no frame could be fitted" in run.stderr
 
 
-def _sequence_fit_with(sitting_data, tmp_path, index: int, edit, *extra: str
-                       ) -> tuple[dict, Path]:
-    """``prox fit --sequence`` of the first two sitting frames after ``edit`` changed the
+def _sequence_fit_with(sitting_data, tmp_path, index: int, edit, *extra: str,
+                       config: str = "prox-chain-only") -> tuple[dict, Path]:
+    """``prox fit --sequence`` (by default the chain's fits alone: no path of least motion
+    through fits from scratch) of the first two sitting frames after ``edit`` changed the
     flat ``pose_keypoints_2d`` list of frame ``index``; the summary and that frame's file."""
     base = tmp_path / "data"
     shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
@@ -107,7 +109,7 @@ def _sequence_fit_with(sitting_data, tmp_path, index: int, edit, *extra: str
     content = json.loads(path.read_text())
     edit(content["people"][0]["pose_keypoints_2d"])
     path.write_text(json.dumps(content))
-    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, "prox"), "--sequence",
+    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, config), "--sequence",
                   "--frames", "2", *extra)
     assert run.returncode == 0, run.stderr
     return json.loads((tmp_path / "seq" / REC / "summary.json").read_text()), path
@@ -133,6 +135,29 @@ def test_sequence_mode_starts_from_the_best_seen_frame(sitting_data, tmp_path):
     # (pipeline._unless_floating)
     assert list(first["timings"]["stages"]) == ["final", "scale_search", "contact",
                                                 "floating_check"]
+
+
+def test_sequence_mode_keeps_the_fits_on_the_path_of_least_motion(sitting_data, tmp_path):
+    """`prox`'s sequence mode fits each frame from scratch too and keeps, frame by frame,
+    the fit on the path along which the body moves least. The first frame, cut off below
+    the knees, follows the anchor (the second): its fit from scratch lies nearer the
+    anchor's than its warm-started fit and is kept, the warm fit's cost charged to it; the
+    anchor, fitted from scratch in the chain, has no other fit."""
+    def hide_feet(points: list[float]) -> None:
+        for k in (11, 14, 19, 20, 21, 22, 23, 24):
+            points[3 * k:3 * k + 3] = [0.0, 0.0, 0.0]
+
+    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 0, hide_feet, "--no-report",
+                                    config="prox")
+    first, anchor = summary["frames"]
+    assert "anchor_search" in anchor["profile"] or "initialise" in anchor["profile"]
+    assert not {"warm_fit", "fresh_fit"} & set(anchor["profile"])
+    kept = [e for e in first["events"] if "kept its fit from scratch" in e]
+    assert len(kept) == 1, first["events"]
+    moved, warm = (float(x) for x in re.findall(r"([\d.]+) cm", kept[0]))
+    assert moved < warm, kept[0]
+    assert first["profile"]["warm_fit"]["body_evaluations"] > 0
+    assert first["seconds"] >= sum(s["seconds"] for s in first["profile"].values()) - 1e-3
 
 
 def test_sequence_mode_anchors_on_a_frame_labelled_as_detected(sitting_data, tmp_path):
