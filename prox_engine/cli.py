@@ -289,7 +289,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, help="fit only the first N frames")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--sequence", action="store_true",
-                      help="warm-start each frame from the previous fit")
+                      help="warm-start each frame from the previous fit (with prox, "
+                           "also fit it from scratch and keep, frame by frame, the fit "
+                           "on the path along which the body moves least)")
     mode.add_argument("--batch", type=_positive, metavar="N",
                       help="fit N frames of a recording together (default: the "
                            "configuration's batch_size, 1)")

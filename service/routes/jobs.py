@@ -52,7 +52,9 @@ def submit(request: Request, response: Response, owner: OwnerDep, settings: Sett
            frames: Annotated[int | None, Form(ge=1, description="fit only the first N "
                                                                 "frames of each recording")] = None,
            sequence: Annotated[bool, Form(description="warm-start each frame from the "
-                                                      "previous one")] = False,
+                                                      "previous one (prox also fits it from "
+                                                      "scratch and keeps the fit on the "
+                                                      "path of least motion)")] = False,
            report: Annotated[bool, Form(description="HTML reports with renders")] = True,
            render_every: Annotated[int, Form(ge=1, description="render every k-th frame in "
                                                                "the reports")] = 1,
