@@ -154,9 +154,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                             search["evaluations"])
                 previous = results[-1] if results else None
                 if anchor is None and start == 0 and previous is not None:
-                    anchor, anchor_px = previous, metrics.reprojection_error(
-                        previous.keypoints, frames[-1].keypoints, camera, body.keypoint_mask,
-                        previous.swapped)
+                    anchor, anchor_px = previous, _error_px(fitter, previous, frames[-1])
             pairs = list(zip(frames, results))
             failed = len(chain[start:start + batch]) - len(pairs)
             written(paths.add(pairs, fresh) if paths else pairs, failed)
