@@ -123,10 +123,6 @@ class FitConfig:
     # least motion through its warm-started fit and its fit from scratch (motion_path,
     # pipeline._Paths); 0: the chain's fits alone.
     sequence_path_window: int = 0
-    # ... each candidate on that path also charged this weight times its mean motion to
-    # the window's other frames' fits from scratch (motion_path.consensus_distance): a
-    # chain anchored wrong moves little, yet sits apart from every frame fitted alone.
-    sequence_path_consensus: float = 0.0
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.

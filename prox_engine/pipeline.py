@@ -20,7 +20,7 @@ from .depth import load_depth_points
 from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
 from .keypoints import BODY, BODY_25, ankle_seen, load_keypoints
-from .motion_path import consensus_distance, least_motion_path, motion
+from .motion_path import least_motion_path, motion
 from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, write_pickle
 from .registration import OFF, Registration, register_scan
 from .scene import Scene
@@ -251,19 +251,16 @@ class _Paths:
         pending, self.pending = self.pending, []
         again = [i for i, (_, _, fresh) in enumerate(pending) if not fresh]
         candidates = [[result] for _, result, _ in pending]
-        evidence: list[torch.Tensor] | None = None  # each frame's fit from scratch
         if again:
             try:
                 for i, other in zip(again, _fit_fresh(self.fitter,
                                                       [pending[i][0] for i in again])):
                     candidates[i].append(other)
-                evidence = [cs[-1].vertices for cs in candidates]
             except (RuntimeError, ValueError) as exc:  # the chain's fits stand
                 for i in again:
                     pending[i][1].events.append(f"sequence: no fit from scratch ({exc})")
         before = None if self.before is None else self.before.vertices
-        path = least_motion_path([[c.vertices for c in cs] for cs in candidates], before,
-                                 evidence, self.fitter.config.sequence_path_consensus)
+        path = least_motion_path([[c.vertices for c in cs] for cs in candidates], before)
         kept = [cs[pick] for cs, pick in zip(candidates, path)]
         for i, (cs, pick) in enumerate(zip(candidates, path)):
             if len(cs) == 1:
@@ -274,15 +271,10 @@ class _Paths:
             if pick:  # a path that leaves the chain has a neighbour to leave it for
                 around = [f.vertices for f in [kept[i - 1] if i else self.before,
                                                *kept[i + 1:i + 2]] if f is not None]
-                apart = ("" if evidence is None or len(evidence) < 2
-                         or not self.fitter.config.sequence_path_consensus
-                         else f"; from the other frames' fits from scratch "
-                              f"{_apart(kept[i], evidence, i)} against "
-                              f"{_apart(dropped, evidence, i)}")
                 kept[i].events.append(
                     "sequence: kept its fit from scratch, on the path of least motion (to "
                     f"the fits kept around it {_moved(kept[i], around)} against the warm "
-                    f"fit's {_moved(dropped, around)}{apart})")
+                    f"fit's {_moved(dropped, around)})")
         if kept:
             self.before = kept[-1]
         return [(frame, fit) for (frame, _, _), fit in zip(pending, kept)]
@@ -291,11 +283,6 @@ class _Paths:
 def _moved(fit: FitResult, around: list[torch.Tensor]) -> str:
     """How far a fit's body is from the fits ``around`` it (vertices): mean, in cm."""
     return f"{100 * sum(motion(fit.vertices, v) for v in around) / len(around):.1f} cm"
-
-
-def _apart(fit: FitResult, evidence: list[torch.Tensor], frame: int) -> str:
-    """How far a fit's body is from the window's other fits from scratch: mean, in cm."""
-    return f"{100 * consensus_distance(fit.vertices, evidence, frame):.1f} cm"
 
 
 def _swapped_far(fitter: Fitter, frames: list[Frame], results: list[FitResult],

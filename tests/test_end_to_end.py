@@ -142,8 +142,7 @@ def test_sequence_mode_keeps_the_fits_on_the_path_of_least_motion(sitting_data, 
     the fit on the path along which the body moves least. The first frame, cut off below
     the knees, follows the anchor (the second): its fit from scratch lies nearer the
     anchor's than its warm-started fit and is kept, the warm fit's cost charged to it; the
-    anchor, fitted from scratch in the chain, has no other fit (nor, alone in its window,
-    other frames' fits from scratch to be weighed against)."""
+    anchor, fitted from scratch in the chain, has no other fit."""
     def hide_feet(points: list[float]) -> None:
         for k in (11, 14, 19, 20, 21, 22, 23, 24):
             points[3 * k:3 * k + 3] = [0.0, 0.0, 0.0]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from prox_engine.motion_path import consensus_distance, least_motion_path, motion
+from prox_engine.motion_path import least_motion_path, motion
 
 BODY = torch.randn(500, 3, generator=torch.Generator().manual_seed(0)) * 0.3
 
@@ -39,25 +39,3 @@ def test_the_fit_kept_before_the_window_draws_the_path_and_single_candidates_pas
     assert least_motion_path(pairs, before=at(0.0)[0]) == [1, 1, 1]
     assert least_motion_path([at(0.0), *pairs[1:]]) == [0, 1, 1]  # the anchor has one fit
     assert least_motion_path([]) == []
-
-
-def test_a_chain_carrying_a_wrong_anchor_loses_to_fits_from_scratch_that_agree():
-    anchor, chain, fresh = at(0.4), at(0.4, 0.4, 0.4, 0.4), at(0.0, 0.0, 0.0, 0.0)
-    frames = [anchor, *[list(c) for c in zip(chain, fresh)]]
-    evidence = [anchor[0], *fresh]
-    assert least_motion_path(frames) == [0, 0, 0, 0, 0]  # the chain moves least
-    assert least_motion_path(frames, evidence=evidence, weight=0.0) == [0, 0, 0, 0, 0]
-    assert least_motion_path(frames, evidence=evidence, weight=1.0) == [0, 1, 1, 1, 1]
-
-
-def test_a_lone_fit_from_scratch_apart_from_the_others_does_not_draw_the_path():
-    chain, fresh = at(0.0, 0.0, 0.0, 0.0), at(0.0, 0.0, 0.5, 0.0)
-    pairs = [list(c) for c in zip(chain, fresh)]
-    assert least_motion_path(pairs, evidence=fresh, weight=1.0) == [0, 0, 0, 0]
-
-
-def test_the_consensus_distance_is_the_mean_motion_to_the_other_frames_fits():
-    evidence = at(0.0, 0.1, 0.3)
-    assert consensus_distance(at(0.0)[0], evidence, 0) == pytest.approx(0.2, abs=1e-6)
-    assert consensus_distance(at(0.0)[0], evidence, 2) == pytest.approx(0.05, abs=1e-6)
-    assert consensus_distance(at(0.0)[0], evidence[:1], 0) == 0.0
