@@ -123,6 +123,11 @@ class FitConfig:
     # least motion through its warm-started fit and its fit from scratch (motion_path,
     # pipeline._Paths); 0: the chain's fits alone.
     sequence_path_window: int = 0
+    # ... and, where set, its anchor is the frame of the first window whose fit from
+    # scratch moves least to the others' (summed; of the frames seen at least anchor_seen
+    # times as well as the best of them), not the first well-seen frame labelled as
+    # detected (pipeline._Paths.chains_from_medoid).
+    anchor_by_motion: bool = False
     # Distinct starting bodies per frame fitted side by side through the first
     # start_stages stages, after which each frame keeps the one with the lowest objective:
     # a posture or orientation the rigid start search ranks second often fits better.

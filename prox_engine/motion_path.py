@@ -6,7 +6,8 @@ or wrong (a kneeler anchored 40 cm near stays near); a frame fitted alone is rig
 by itself. People move little from one frame to the next, and a wrong fit of either kind
 sits apart from its neighbours: the path whose summed motion (each step the mean distance
 between the two fits' vertices) is least keeps, per frame, the fit that agrees with the
-frames around it (Viterbi over two states a frame)."""
+frames around it (Viterbi over two states a frame). For the same reason a chain starts
+from the frame whose fit from scratch moves least to the others' (:func:`medoid`)."""
 from __future__ import annotations
 
 import torch
@@ -38,3 +39,9 @@ def least_motion_path(candidates: list[list[torch.Tensor]],
         best = came_from[best]
         path.append(best)
     return path[::-1]
+
+
+def medoid(bodies: list[torch.Tensor], among: list[int]) -> int:
+    """Of the bodies ``among`` (indices into ``bodies``, vertices (V, 3) each), the one
+    whose summed motion to all of them is least (of equals, the first)."""
+    return min(among, key=lambda i: sum(motion(bodies[i], other) for other in bodies))

@@ -20,7 +20,7 @@ from .depth import load_depth_points
 from .errors import InputError
 from .fitting import Fitter, FitResult, Frame
 from .keypoints import BODY, BODY_25, ankle_seen, load_keypoints
-from .motion_path import least_motion_path, motion
+from .motion_path import least_motion_path, medoid, motion
 from .output import atomic_write_bytes, frame_paths, ply_bytes, write_json, write_pickle
 from .registration import OFF, Registration, register_scan
 from .scene import Scene
@@ -126,9 +126,15 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
 
     paths = (_Paths(fitter, config.sequence_path_window)
              if sequence and config.sequence_path_window > 0 else None)
-    for chain in (_chains(rec, names, config.anchor_seen,
-                          as_detected if config.anchor_as_detected else None)
-                  if sequence else [names]):
+    if not sequence:
+        chains = [names]
+    elif paths and config.anchor_by_motion:
+        chains = paths.chains_from_medoid(rec, names, lambda name: _load_frame(
+            rec, name, camera, config, depth_camera), config.anchor_seen)
+    else:
+        chains = _chains(rec, names, config.anchor_seen,
+                         as_detected if config.anchor_as_detected else None)
+    for chain in chains:
         previous = anchor  # a backward chain starts from the anchor frame's fit
         if paths:
             paths.before = anchor
@@ -144,7 +150,8 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
             results: list[FitResult] = []
             if frames:
                 try:
-                    results = (_fit_fresh(fitter, frames) if fresh else
+                    results = (paths.fresh_fits(frames) if paths and fresh else
+                               _fit_fresh(fitter, frames) if fresh else
                                _fit_from(fitter, frames[0], previous, anchor or previous,
                                          anchor_px))
                 except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
@@ -232,12 +239,46 @@ class _Paths:
     the frames together: as single frames fit them), and handed back with the fit on the
     path of least motion through each frame's two (:mod:`motion_path`), from the fit kept
     for the frame before them (``before``: a chain's first frame has none, a backward
-    chain's the anchor's)."""
+    chain's the anchor's). With FitConfig.anchor_by_motion the first window's frames are
+    fitted from scratch before the chain, to choose its anchor by, and those fits serve
+    the chain and the path."""
 
     def __init__(self, fitter: Fitter, window: int) -> None:
         self.fitter, self.window = fitter, window
         self.before: FitResult | None = None
         self.pending: list[tuple[Frame, FitResult, bool]] = []
+        self.ahead: dict[str, FitResult] = {}  # fits from scratch made before the chain
+
+    def chains_from_medoid(self, rec: Recording, names: list[str],
+                           load: Callable[[str], Frame], anchor_seen: float
+                           ) -> list[list[str]]:
+        """Sequence mode's order (see :func:`_chains`) from the anchor whose fit from
+        scratch moves least to the others of the first window's frames (summed; of the
+        frames seen at least ``anchor_seen`` times as well as the best of them), those
+        fits kept for the chain and the path (FitConfig.anchor_by_motion)."""
+        frames = []
+        for name in names[:self.window]:
+            try:
+                frames.append(load(name))
+            except InputError:
+                continue  # reported when the chain comes to it
+        try:
+            fits = _fit_fresh(self.fitter, frames) if frames else []
+        except (RuntimeError, ValueError):
+            fits = []
+        if not fits:
+            return _chains(rec, names, anchor_seen, None)
+        self.ahead = {frame.name: fit for frame, fit in zip(frames, fits)}
+        seen = [_seen(rec, frame.name) for frame in frames]
+        well_seen = [i for i, s in enumerate(seen) if s >= anchor_seen * max(seen)]
+        anchor = names.index(frames[medoid([fit.vertices for fit in fits], well_seen)].name)
+        return [names[anchor:], names[:anchor][::-1]]
+
+    def fresh_fits(self, frames: list[Frame]) -> list[FitResult]:
+        """``frames`` fitted from scratch (:func:`_fit_fresh`), or their fits made ahead."""
+        if all(frame.name in self.ahead for frame in frames):
+            return [self.ahead.pop(frame.name) for frame in frames]
+        return _fit_fresh(self.fitter, frames)
 
     def add(self, pairs: list[tuple[Frame, FitResult]], fresh: bool
             ) -> list[tuple[Frame, FitResult]]:
@@ -249,13 +290,19 @@ class _Paths:
     def flush(self) -> list[tuple[Frame, FitResult]]:
         """The frames held and the fit kept for each, in order."""
         pending, self.pending = self.pending, []
-        again = [i for i, (_, _, fresh) in enumerate(pending) if not fresh]
         candidates = [[result] for _, result, _ in pending]
+        again = [i for i, (_, _, fresh) in enumerate(pending) if not fresh]
         if again:
             try:
-                for i, other in zip(again, _fit_fresh(self.fitter,
-                                                      [pending[i][0] for i in again])):
-                    candidates[i].append(other)
+                others = [frame for frame, _, _ in pending]
+                made = {i: self.ahead.pop(others[i].name) for i in again
+                        if others[i].name in self.ahead}
+                missing = [i for i in again if i not in made]
+                if missing:
+                    made |= dict(zip(missing, _fit_fresh(self.fitter,
+                                                         [others[i] for i in missing])))
+                for i in again:
+                    candidates[i].append(made[i])
             except (RuntimeError, ValueError) as exc:  # the chain's fits stand
                 for i in again:
                     pending[i][1].events.append(f"sequence: no fit from scratch ({exc})")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from prox_engine.motion_path import least_motion_path, motion
+from prox_engine.motion_path import least_motion_path, medoid, motion
 
 BODY = torch.randn(500, 3, generator=torch.Generator().manual_seed(0)) * 0.3
 
@@ -39,3 +39,10 @@ def test_the_fit_kept_before_the_window_draws_the_path_and_single_candidates_pas
     assert least_motion_path(pairs, before=at(0.0)[0]) == [1, 1, 1]
     assert least_motion_path([at(0.0), *pairs[1:]]) == [0, 1, 1]  # the anchor has one fit
     assert least_motion_path([]) == []
+
+
+def test_the_medoid_is_the_body_that_moves_least_to_the_others_among_those_allowed():
+    bodies = at(0.0, 0.01, 0.02, 0.5, 0.6)
+    assert medoid(bodies, list(range(5))) == 2
+    assert medoid(bodies, [0, 3, 4]) == 0  # the frames seen well enough
+    assert medoid(bodies, [4]) == 4
