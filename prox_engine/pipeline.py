@@ -275,10 +275,13 @@ class _Paths:
         return [names[anchor:], names[:anchor][::-1]]
 
     def fresh_fits(self, frames: list[Frame]) -> list[FitResult]:
-        """``frames`` fitted from scratch (:func:`_fit_fresh`), or their fits made ahead."""
-        if all(frame.name in self.ahead for frame in frames):
-            return [self.ahead.pop(frame.name) for frame in frames]
-        return _fit_fresh(self.fitter, frames)
+        """``frames`` fitted from scratch: their fits made ahead, the others fitted
+        together (:func:`_fit_fresh`)."""
+        missing = [frame for frame in frames if frame.name not in self.ahead]
+        made = dict(zip([frame.name for frame in missing],
+                        _fit_fresh(self.fitter, missing) if missing else []))
+        return [self.ahead.pop(frame.name) if frame.name in self.ahead else made[frame.name]
+                for frame in frames]
 
     def add(self, pairs: list[tuple[Frame, FitResult]], fresh: bool
             ) -> list[tuple[Frame, FitResult]]:
@@ -294,15 +297,8 @@ class _Paths:
         again = [i for i, (_, _, fresh) in enumerate(pending) if not fresh]
         if again:
             try:
-                others = [frame for frame, _, _ in pending]
-                made = {i: self.ahead.pop(others[i].name) for i in again
-                        if others[i].name in self.ahead}
-                missing = [i for i in again if i not in made]
-                if missing:
-                    made |= dict(zip(missing, _fit_fresh(self.fitter,
-                                                         [others[i] for i in missing])))
-                for i in again:
-                    candidates[i].append(made[i])
+                for i, fit in zip(again, self.fresh_fits([pending[i][0] for i in again])):
+                    candidates[i].append(fit)
             except (RuntimeError, ValueError) as exc:  # the chain's fits stand
                 for i in again:
                     pending[i][1].events.append(f"sequence: no fit from scratch ({exc})")
@@ -534,7 +530,8 @@ def _errors(fitter: Fitter, result: FitResult, frame: Frame) -> torch.Tensor:
 
 def _error_px(fitter: Fitter, result: FitResult, frame: Frame) -> float:
     """The fit's reprojection error (metrics.reprojection_error)."""
-    return float(_errors(fitter, result, frame).nanmean())
+    return metrics.reprojection_error(result.keypoints, frame.keypoints, fitter.camera,
+                                      fitter.body.keypoint_mask, result.swapped)
 
 
 def _chains(rec: Recording, names: list[str], anchor_seen: float,
