@@ -202,6 +202,9 @@ class FitConfig:
     # ... and, where the knees are seen and nothing below them, the shins alone posed so
     # (Fitter._hidden_leg_postures).
     hidden_shin_postures: bool = False
+    # ... ranked with these contact parts counted as missing for every posture: hidden
+    # legs are no evidence of what they touch (Fitter._hidden_leg_postures)
+    hidden_leg_uncounted: list[str] = field(default_factory=list)
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the
     # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose

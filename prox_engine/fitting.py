@@ -183,6 +183,9 @@ class Fitter:
                                  if p in body.contact_parts]
         self.standing_parts = torch.tensor([p in STANDING_PARTS for p in config.contact_parts
                                             if p in body.contact_parts], dtype=torch.bool)
+        self.hidden_leg_parts = torch.tensor([p in config.hidden_leg_uncounted
+                                              for p in config.contact_parts
+                                              if p in body.contact_parts], dtype=torch.bool)
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
         # How deep each vertex of the scene terms rests inside a surface it touches
         # (config.soft_sink; None: on it) and may enter it unpenalised (one depth for all
@@ -494,30 +497,33 @@ class Fitter:
 
     def _best_rows(self, params: Params, detected: torch.Tensor,
                    terms: dict[str, torch.Tensor],
-                   counts: list[int], by_scene: bool, priors: bool = True) -> list[int]:
+                   counts: list[int], by_scene: bool, priors: bool = True,
+                   uncounted: torch.Tensor | None = None) -> list[int]:
         """Rows (one per frame) of the candidates, ``counts`` per frame (each frame's rows
         consecutive), with the lowest objective (``terms``; without the
         POSTURE_PRIORS unless ``priors``) plus, ``by_scene`` with a scale search,
         ``start_scene_weight`` times how badly each can meet the scene at its best scale
         (the body joints ``detected`` (rows, 25) as :meth:`_scale_search` reads them)
-        and, with ``start_choice_size``, the size prior at that scale."""
+        and, with ``start_choice_size``, the size prior at that scale; the contact parts
+        ``uncounted`` ((P,) bool) count as missing for every row."""
         score = sum(v for k, v in terms.items()
                     if (priors or k not in POSTURE_PRIORS) and k not in UNRANKED)
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
             score = score + self.config.start_scene_weight * self._scene_costs(
-                params, detected, score, counts)
+                params, detected, score, counts, uncounted)
         return [group.start + int(score[group].argmin())
                 for group in lbfgs.sized_groups(counts)]
 
     def _scene_costs(self, params: Params, detected: torch.Tensor, score: torch.Tensor,
-                     counts: list[int]) -> torch.Tensor:
+                     counts: list[int], uncounted: torch.Tensor | None = None
+                     ) -> torch.Tensor:
         """Per candidate row (``counts`` per frame), how badly it can meet the scene at
         its best scale: :meth:`_scale_search`'s cost, plus, with ``start_choice_size``,
         the size prior there. That sum is what the search minimises, so each frame's rows
         are then searched in the order of their ``score`` (the objective), each skipping
         the scales at which it cannot beat its frame's best so far: the same choice, for
         a fifth fewer scales evaluated on the speed benchmark."""
-        search, sizes = self._scale_searcher(params, detected)
+        search, sizes = self._scale_searcher(params, detected, uncounted=uncounted)
         if not self.config.start_choice_size:
             return search(torch.arange(len(score)))[1]
         weight = self.config.start_scene_weight
@@ -635,8 +641,11 @@ class Fitter:
         by the best of its fit and copies with the legs posed as each start posture's
         (:meth:`BodyModel.leg_postures`), ranked as the starts are: the ``stage``'s data
         term plus how badly each can meet the scene at its best scale (with the size
-        prior there). Hidden legs are the start's guess, which the keypoint stages keep
-        and the scale search then places the body around (development seed 315's
+        prior there; the contact parts of ``hidden_leg_uncounted`` counted as missing,
+        whatever they touch: a tall kneeler's legs posed sitting rested the thighs on the
+        low table in front, nearer and smaller, and won). Hidden legs are the start's
+        guess, which the keypoint stages keep and the scale search then places the body
+        around (development seed 315's
         kneeler behind a low table, its knees fitted 55-61 cm off the floor: 264 -> 75 mm
         posed kneeling). With ``hidden_leg_refit``, each is first refitted through
         ``stage`` (:meth:`_refit_candidates`). With ``hidden_shin_postures``, so are the
@@ -673,7 +682,7 @@ class Fitter:
             data = self._data_term(stage, self.body(wide.params, vertices=False),
                                    wide.target, wide.conf)
         best = self._best_rows(wide.params, wide.detected, {"data": data}, counts,
-                               by_scene=True, priors=False)
+                               by_scene=True, priors=False, uncounted=self.hidden_leg_parts)
         for frame, (row, group) in enumerate(zip(best, lbfgs.sized_groups(counts))):
             if row != group.start:
                 part = "shins" if shins[frame] else "legs"
@@ -949,14 +958,16 @@ class Fitter:
         search, _ = self._scale_searcher(params, detected, self.config.scale_feet_carry)
         return search(torch.arange(len(detected)))
 
-    def _scale_searcher(self, params: Params, detected: torch.Tensor, feet_carry: bool = False
+    def _scale_searcher(self, params: Params, detected: torch.Tensor, feet_carry: bool = False,
+                        uncounted: torch.Tensor | None = None
                         ) -> tuple[Callable[..., tuple[torch.Tensor, torch.Tensor]],
                                    torch.Tensor]:
         """:meth:`_scale_search` of the bodies ``params`` posed once, searched for the
         ``rows`` asked, each under its total's ceiling where ``ceilings`` are given
         (:func:`scale_search.best_scale`), and the bodies' sizes as its size prior reads
         them (:meth:`_sizes`); with ``feet_carry``, bodies on their feet rest on them
-        alone (:func:`scale_search.feet_carried`)."""
+        alone (:func:`scale_search.feet_carried`); the contact parts ``uncounted`` ((P,)
+        bool) count as missing for every body."""
         cfg, body = self.config, self.body
         with torch.no_grad():
             out = body(params)
@@ -972,6 +983,9 @@ class Fitter:
         axes = out.spheres[..., :3] if cfg.scale_axes and out.spheres is not None else None
         counted = (standing_counts(standing_legs(joints, detected, up), self.standing_parts)
                    if bool(self.standing_parts.any()) and cfg.scale_standing_feet else None)
+        if uncounted is not None and bool(uncounted.any()):
+            counted = (torch.ones(len(joints), len(uncounted), dtype=torch.bool)
+                       if counted is None else counted) & ~uncounted
         sizes = self._sizes(params)
         feet = feet_carried(joints, detected, up) if feet_carry else None
 

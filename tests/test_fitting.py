@@ -1135,6 +1135,22 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
                             "prox-no-hidden-legs")
 
 
+def test_hidden_legs_contact_parts_count_as_missing_for_every_posture(body):
+    """The scale search behind the hidden legs' ranking counts the contact parts of
+    ``hidden_leg_uncounted`` as missing, whatever they touch: a standing body's soles on
+    the floor (its only counted parts) then cost it their share of the seven parts; the
+    search without them, as every other search, counts them touching."""
+    scene, params, _ = _standing_on_floor(body)
+    config = replace(load_config("prox"), hidden_leg_uncounted=["left_foot", "right_foot"])
+    fitter = Fitter(body, CAMERA, config, scene)
+    detected, rows = torch.full((1, 25), 0.9), torch.arange(1)
+    assert int(fitter.hidden_leg_parts.sum()) == 2 and len(fitter.hidden_leg_parts) == 7
+    (_, counted), (_, uncounted) = (
+        fitter._scale_searcher(params, detected, uncounted=parts)[0](rows)
+        for parts in (None, fitter.hidden_leg_parts))
+    assert float(uncounted - counted) == pytest.approx(2 / 7, abs=0.03), (counted, uncounted)
+
+
 def test_hidden_legs_postures_are_ranked_refitted_not_as_set(body):
     """A body kneeling on the floor under a tilted, rolled, off-centre camera, its knees,
     ankles and feet reported faintly (under HIDDEN) where they are, fitted through the
