@@ -181,11 +181,10 @@ class Fitter:
         self.on_stage = on_stage  # told each stage's name as it starts (progress, cancelling)
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
-        self.standing_parts = torch.tensor([p in STANDING_PARTS for p in config.contact_parts
-                                            if p in body.contact_parts], dtype=torch.bool)
-        self.hidden_leg_parts = torch.tensor([p in config.hidden_leg_uncounted
-                                              for p in config.contact_parts
-                                              if p in body.contact_parts], dtype=torch.bool)
+        # (P,) bool over those parts: a standing body's, and those a hidden legs'
+        # ranking counts as missing
+        self.standing_parts = self._contact_mask(STANDING_PARTS)
+        self.hidden_leg_parts = self._contact_mask(config.hidden_leg_uncounted)
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
         # How deep each vertex of the scene terms rests inside a surface it touches
         # (config.soft_sink; None: on it) and may enter it unpenalised (one depth for all
@@ -259,6 +258,11 @@ class Fitter:
                 normals)
 
     # ------------------------------------------------------------------ public API
+    def _contact_mask(self, names: Sequence[str]) -> torch.Tensor:
+        """(P,) bool over the contact parts the fit uses: which are among ``names``."""
+        return torch.tensor([p in names for p in self.config.contact_parts
+                             if p in self.body.contact_parts], dtype=torch.bool)
+
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
             previous_keypoints: torch.Tensor | None = None,
             start: int | Sequence[int | None] | None = None, sized_as: Params | None = None,
@@ -635,25 +639,24 @@ class Fitter:
         return restarts
 
     def _hidden_leg_postures(self, rows: _Rows, stage: Stage) -> _Rows:
-        """``rows`` (one per frame), each frame whose detector reports no knee or ankle
-        at HIDDEN or more and whose fitted knees lie in the image (legs behind furniture,
-        or cut off by the image's edge where the fit brings the knees inside it) replaced
-        by the best of its fit and copies with the legs posed as each start posture's
-        (:meth:`BodyModel.leg_postures`), ranked as the starts are: the ``stage``'s data
-        term plus how badly each can meet the scene at its best scale (with the size
-        prior there; the contact parts of ``hidden_leg_uncounted`` counted as missing,
-        whatever they touch: a tall kneeler's legs posed sitting rested the thighs on the
-        low table in front, nearer and smaller, and won). Hidden legs are the start's
-        guess, which the keypoint stages keep and the scale search then places the body
-        around (development seed 315's
-        kneeler behind a low table, its knees fitted 55-61 cm off the floor: 264 -> 75 mm
-        posed kneeling). With ``hidden_leg_refit``, each is first refitted through
-        ``stage`` (:meth:`_refit_candidates`). With ``hidden_shin_postures``, so are the
-        frames whose knees the detector reports at HIDDEN or more and nothing below them
-        (no ankle, toe or heel at HIDDEN), their fitted ankles in the image, with the
-        shins alone posed, refitted without the plumb-shin prior (on for such legs, it
-        would draw them back down): a kneeler's shins flat behind a low table and a
-        squatter's upright project alike (seed 102's squatter)."""
+        """``rows`` (one per frame), each frame whose detector reports no knee or ankle at HIDDEN
+        or more and whose fitted knees lie in the image (legs behind furniture, or cut off by
+        the image's edge where the fit brings the knees inside it) replaced by the best of its
+        fit and copies with the legs posed as each start posture's
+        (:meth:`BodyModel.leg_postures`), ranked as the starts are: the ``stage``'s data term
+        plus how badly each can meet the scene at its best scale (with the size prior there; the
+        contact parts of ``hidden_leg_uncounted`` counted as missing, whatever they touch: a
+        tall kneeler's legs posed sitting rested the thighs on the low table in front, nearer
+        and smaller, and won). Hidden legs are the start's guess, which the keypoint stages keep
+        and the scale search then places the body around (development seed 315's kneeler behind
+        a low table, its knees fitted 55-61 cm off the floor: 264 -> 75 mm posed kneeling). With
+        ``hidden_leg_refit``, each is first refitted through ``stage``
+        (:meth:`_refit_candidates`). With ``hidden_shin_postures``, so are the frames whose
+        knees the detector reports at HIDDEN or more and nothing below them (no ankle, toe or
+        heel at HIDDEN), their fitted ankles in the image, with the shins alone posed, refitted
+        without the plumb-shin prior (on for such legs, it would draw them back down): a
+        kneeler's shins flat behind a low table and a squatter's upright project alike (seed
+        102's squatter)."""
         detected = rows.detected
         legs = (detected[:, [*KNEES, *ANKLES]] < HIDDEN).all(1)
         shins = ((detected[:, KNEES] >= HIDDEN).all(1) & (detected[:, FEET] < HIDDEN).all(1)
