@@ -230,6 +230,53 @@ def test_compare_counts_the_frames_a_change_moved_in_millimetres(tmp_path):
     assert "Traceback" not in missing.stderr + absent.stderr
 
 
+def test_targets_are_checked_pooled_and_seed_by_seed(tmp_path):
+    """Two seeds, each split over two files as the held-out runs write them: seed 1 meets
+    every target; on seed 2 single frames sit 10 mm further from the truth than rgb and
+    sequence mode as far (a tie is no gain), and its PJE (115 mm) is over 100 and cut by
+    4 %. Pooled, every target holds; sequence mode is 6.25 mm better by recording."""
+    from benchmarks.targets import load, missed, pooled
+
+    def row(kind: str, pje: float, condition: str = "clean") -> dict:
+        return {"kind": kind, "frame": "f1", "condition": condition, "pje": pje,
+                "v2v": pje + 1.0, "p_pje": pje / 2, "p_v2v": pje / 2,
+                "penetrating_share": 0.001, "penetration_mean_depth_m": 0.01,
+                "penetrating_share_as_given": 0.001, "seconds": 1.0, "gt_contacts": 2,
+                "contacts_recovered": 1, "sides_right": True}
+
+    fits = {1: {"rgb": (200, 200), "prox": (60, 80), "prox-sequence": (55, 75)},
+            2: {"rgb": (150, 90), "prox": (160, 70), "prox-sequence": (150, 65)}}
+    files = []
+    for seed, configs in fits.items():
+        for part, names in (("a", ("rgb", "prox")), ("b", ("prox-sequence",))):
+            path = tmp_path / f"{seed}{part}.json"
+            path.write_text(json.dumps({"settings": {"seed": seed}, "frames": {
+                name: [row("sit", configs[name][0], "blurred"), row("walk", configs[name][1])]
+                for name in names}}))
+            files.append(str(path))
+    by_seed = load(files)
+    assert missed(by_seed[1], "rgb", "prox", "prox-sequence") == []
+    assert missed(by_seed[2], "rgb", "prox", "prox-sequence") == [
+        "PJE 115.0", "PJE cut 4 %",
+        "sit in PJE and V2V in single frames (160.0 / 161.0 against 150.0 / 151.0)",
+        "sit in PJE and V2V in sequence mode (150.0 / 151.0 against 150.0 / 151.0)"]
+    assert missed(pooled(by_seed), "rgb", "prox", "prox-sequence") == []
+    shown = subprocess.run([sys.executable, "-m", "benchmarks.targets", *files],
+                           capture_output=True, text=True, check=True).stdout
+    assert "| prox | 92.5 | 46.2 | 93.5 | 0.10 | 4 / 4 |" in shown
+    assert "| 1 | 200.0 | 70.0 / 35.0 | 65.0 | 0.10 | 70.0 / 80 | none |" in shown
+    assert "Every target held on 1 of 2 seeds (1)." in shown
+    assert "| blurred | 2 | 110.0 / 55.0 | 175.0 | 102.5 |" in shown
+    assert "by recording: -6.25 mm" in shown
+    lacking = subprocess.run([sys.executable, "-m", "benchmarks.targets", files[0]],
+                             capture_output=True, text=True)
+    assert lacking.returncode != 0 and "no configuration 'prox-sequence'" in lacking.stderr
+    twice = subprocess.run([sys.executable, "-m", "benchmarks.targets", files[0], files[0]],
+                           capture_output=True, text=True)
+    assert twice.returncode != 0 and "seed 1's 'rgb' is in another file too" in twice.stderr
+    assert "Traceback" not in lacking.stderr + twice.stderr
+
+
 def test_frames_are_told_apart_by_what_the_detector_did():
     """The worst thing the detector did names a frame's condition: cut off below the knees
     before blurred, blurred before swapped sides; nothing is clean."""
