@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from .evaluate import CONDITIONS, aggregate
 
 PJE_MAX, P_PJE_MAX, CUT_MIN, PENETRATION_MAX = 100.0, 60.0, 0.30, 0.005
 MOVED_MM = 15.0  # frames that moved by more than this are counted
+WIDTH = 90  # the report's paragraphs wrapped as the README's prose
 
 
 def load(paths: list[Path]) -> dict[int, dict[str, list[dict]]]:
@@ -148,10 +150,10 @@ def report(by_seed: dict[int, dict[str, list[dict]]], baseline: str = "rgb",
             + f"{100 * fit['penetrating_share']:.2f} | {statistics.median(errors):.1f} / "
             f"{errors[-1]:.0f} | {'; '.join(misses[seed]) or 'none'} |")
     held = [seed for seed, missing in misses.items() if not missing]
-    lines += ["", f"Pooled, targets missed: "
-              f"{'; '.join(missed(rows, baseline, single, sequence)) or 'none'}. "
-              f"Every target held on {len(held)} of {len(by_seed)} seeds"
-              + (f" ({', '.join(map(str, sorted(held)))})." if held else ".")]
+    lines += ["", _wrapped(f"Pooled, targets missed: "
+                           f"{'; '.join(missed(rows, baseline, single, sequence)) or 'none'}. "
+                           f"Every target held on {len(held)} of {len(by_seed)} seeds"
+                           + (f" ({', '.join(map(str, sorted(held)))})." if held else "."))]
     lines += ["", f"| condition | frames | {single} PJE / p.PJE | {baseline} PJE | "
               + (f"{sequence} PJE |" if sequence else ""),
               "|---" * (5 if sequence else 4) + "|"]
@@ -164,18 +166,23 @@ def report(by_seed: dict[int, dict[str, list[dict]]], baseline: str = "rgb",
                      f"{fit['p_pje']:.1f} | {aggregate(cells[baseline])['pje']:.1f} | "
                      + (f"{aggregate(cells[sequence])['pje']:.1f} |" if sequence else ""))
     errors = [r["pje"] for r in rows[single]]
-    lines += ["", f"{single}: median frame {statistics.median(errors):.1f} mm, "
-              f"{sum(e > 200 for e in errors)} of {len(errors)} over 200, "
-              f"{sum(e > 300 for e in errors)} over 300."]
+    summary = (f"{single}: median frame {statistics.median(errors):.1f} mm, "
+               f"{sum(e > 200 for e in errors)} of {len(errors)} over 200, "
+               f"{sum(e > 300 for e in errors)} over 300.")
     if sequence:
         mean, low, high = by_recording(rows[single], rows[sequence])
         change = {(r["seed"], r["kind"], r["frame"]): r["pje"] for r in rows[single]}
         moved = [r["pje"] - change[(r["seed"], r["kind"], r["frame"])] for r in rows[sequence]]
-        lines.append(f"{sequence} against {single}, by recording: {mean:+.2f} mm (95 % "
-                     f"{low:+.2f} to {high:+.2f}); frames better / worse by more than "
-                     f"{MOVED_MM:g} mm: {sum(m < -MOVED_MM for m in moved)} / "
-                     f"{sum(m > MOVED_MM for m in moved)}.")
-    return "\n".join(lines)
+        summary += (f" {sequence} against {single}, by recording: {mean:+.2f} mm (95 % "
+                    f"{low:+.2f} to {high:+.2f}); frames better / worse by more than "
+                    f"{MOVED_MM:g} mm: {sum(m < -MOVED_MM for m in moved)} / "
+                    f"{sum(m > MOVED_MM for m in moved)}.")
+    return "\n".join([*lines, "", _wrapped(summary)])
+
+
+def _wrapped(text: str) -> str:
+    """A paragraph of the report, wrapped as the README's prose is."""
+    return textwrap.fill(text, WIDTH, break_on_hyphens=False)
 
 
 def main(argv: list[str] | None = None) -> None:
