@@ -71,8 +71,9 @@ def missed(rows: dict[str, list[dict]], baseline: str, single: str,
     if fit["pje"] > (1 - CUT_MIN) * base["pje"]:
         misses.append(f"PJE cut {100 * (1 - fit['pje'] / base['pje']):.0f} %")
     modes = [("single frames", single)] + ([("sequence mode", sequence)] if sequence else [])
+    overall = {config: aggregate(rows[config]) for _, config in modes}
     for mode, config in modes:
-        share = aggregate(rows[config])["penetrating_share"]
+        share = overall[config]["penetrating_share"]
         if share > PENETRATION_MAX:
             misses.append(f"penetration {100 * share:.2f} % in {mode}")
     for kind in sorted({r["kind"] for r in rows[baseline]}):
@@ -84,8 +85,8 @@ def missed(rows: dict[str, list[dict]], baseline: str, single: str,
             if lost:
                 misses.append(f"{kind} in {' and '.join(lost)} in {mode} ({got['pje']:.1f} / "
                               f"{got['v2v']:.1f} against {ref['pje']:.1f} / {ref['v2v']:.1f})")
-    if sequence and aggregate(rows[sequence])["pje"] > fit["pje"]:
-        misses.append(f"sequence mode worse ({aggregate(rows[sequence])['pje']:.1f})")
+    if sequence and overall[sequence]["pje"] > fit["pje"]:
+        misses.append(f"sequence mode worse ({overall[sequence]['pje']:.1f})")
     return misses
 
 

@@ -257,12 +257,12 @@ class Fitter:
         return (subset, None if penetration is None else (local[penetration[0]], penetration[1]),
                 normals)
 
-    # ------------------------------------------------------------------ public API
     def _contact_mask(self, names: Sequence[str]) -> torch.Tensor:
         """(P,) bool over the contact parts the fit uses: which are among ``names``."""
         return torch.tensor([p in names for p in self.config.contact_parts
                              if p in self.body.contact_parts], dtype=torch.bool)
 
+    # ------------------------------------------------------------------ public API
     def fit(self, frames: list[Frame], warm_start: Params | None = None,
             previous_keypoints: torch.Tensor | None = None,
             start: int | Sequence[int | None] | None = None, sized_as: Params | None = None,
