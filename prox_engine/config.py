@@ -283,11 +283,6 @@ class FitConfig:
     # legs made a seated person a standing one, metres off.
     upright_weight: float = 0.0
     upright_rho: float = 0.35
-    # A frame with no ankle seen whose thighs are seen hanging (keypoints.thighs_hanging)
-    # tells standing from sitting: its second start is not the best with the other
-    # thighs (start_other_thighs). Cut off at the knees, standers with a wall behind them
-    # were fitted seated on nothing, back and buttocks on the wall.
-    hanging_thighs_tell: bool = False
     # Every stage: a trunk within level_rho (radians) of the horizontal is drawn level
     # (keypoint_terms.trunk_terms, a reward, 0 beyond: a fit that never comes that near
     # level does not change at all): a lying trunk seen along the camera's rays was

@@ -18,10 +18,9 @@ from .body.by_frame import FRAME, by_frame, one_frame
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
-from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES, MID_HIP,
+from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES,
                         LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
-                        cut_legs, nothing_below_knees, side_swap, thighs_hanging, thighs_hidden,
-                        toes_unseen)
+                        cut_legs, nothing_below_knees, side_swap, thighs_hidden, toes_unseen)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .rescale import rescaled
@@ -1166,7 +1165,7 @@ class Fitter:
                 self.config.data_rho, self.config.init_depth_weight,
                 [side_swap(label) for label in labellings], events=self.events, keep=keep,
                 facing_cost=self.config.facing_cost,
-                guessed_legs=self._guessed_legs(target[which], conf[which]))
+                guessed_legs=self._guessed_legs(conf[which]))
             rows = [b * keep + r for b in which for r in range(keep)]  # in frame order
             for name, value in found.items():
                 params.setdefault(name, value.new_empty(len(labels), *value.shape[1:]))
@@ -1178,19 +1177,14 @@ class Fitter:
                          self.events[before:])
         return params, list(labels)
 
-    def _guessed_legs(self, target: torch.Tensor, conf: torch.Tensor) -> torch.Tensor | None:
-        """(B,) bool: the frames whose keypoints (``target`` (B, K, 2), the detector's
-        confidences ``conf`` (B, K)) cannot tell sitting from standing, whose second start
-        has the other thighs (``config.start_other_thighs``): no ankle seen, unless (with
-        ``hanging_thighs_tell``) the thighs are seen hanging along world down
-        (:func:`keypoints.thighs_hanging`), or (with ``start_thighs_hidden``) neither hip
-        nor knee; None without."""
+    def _guessed_legs(self, conf: torch.Tensor) -> torch.Tensor | None:
+        """(B,) bool: the frames whose keypoints (the detector's confidences ``conf``
+        (B, K)) cannot tell sitting from standing, whose second start has the other
+        thighs (``config.start_other_thighs``): no ankle seen, or (with
+        ``start_thighs_hidden``) neither hip nor knee; None without."""
         if not self.config.start_other_thighs:
             return None
         guessed = ~ankle_seen(conf)
-        if self.config.hanging_thighs_tell:
-            down = self.camera.image_direction(target[:, MID_HIP], -self.up)
-            guessed &= ~thighs_hanging(target, conf, down)
         return guessed | thighs_hidden(conf) if self.config.start_thighs_hidden else guessed
 
     def _closest_labelling(self, target: torch.Tensor, conf: torch.Tensor,

@@ -223,65 +223,6 @@ def test_upright_term_spares_frames_cut_off_at_the_knees(body):
                                           [None, None], None)(out)
 
 
-def test_image_direction_is_a_world_direction_seen_from_any_depth():
-    """Seen by a tilted, rolled, off-centre camera, a point that moves a little along
-    world down moves in the image along Camera.image_direction of its pixel, whatever its
-    depth on the pixel's ray."""
-    cam2world = tilted_camera()
-    down = -floor_scene(cam2world).up_in_camera().double()
-    pixels = torch.tensor([[300.0, 900.0], [1500.0, 200.0]], dtype=torch.float64)
-    direction = CAMERA.image_direction(pixels, down)
-    for depth in (1.5, 4.0):
-        points = CAMERA.backproject(pixels[:, 0], pixels[:, 1], torch.full((2,), depth))
-        moved = CAMERA.project(points + 1e-4 * down) - CAMERA.project(points)
-        moved = moved / moved.norm(dim=-1, keepdim=True)
-        assert torch.allclose(moved, direction, atol=1e-4)
-    assert float((direction[0] - direction[1]).norm()) > 0.05  # it depends on the pixel
-
-
-def _cut_off_frame(body, cam2world: np.ndarray, posture: str) -> Frame:
-    """A mean body in ``posture`` on the floor at the camera's target, facing the camera
-    turned by 60 degrees, its keypoints projected and nothing below the knees reported."""
-    out, shift = _placed(body, body.init_params(1, posture), cam2world, math.radians(60))
-    frame = frame_of(world_to_camera(out.keypoints[0] + shift, cam2world))
-    frame.keypoints.data[FEET, 2] = 0.0
-    return frame
-
-
-def test_thighs_seen_hanging_tell_standing_from_sitting(body):
-    """Cut off below the knees and seen by a tilted, rolled, off-centre camera, a standing
-    body's thighs hang in the image along world down, a seated one's do not, and knees
-    reported as guesses (under HIDDEN) are not seen. `prox` then takes the standing
-    frame's legs as known, and starts it with no seated thighs;
-    `prox-hanging-thighs-guessed` takes them as a guess, and gives it a seated second
-    start. The seated frame's legs are a guess in both."""
-    from prox_engine.initialisation import _thighs_forward
-    from prox_engine.keypoints import thighs_hanging
-
-    cam2world = tilted_camera()
-    frames = [_cut_off_frame(body, cam2world, p) for p in ("standing", "sitting")]
-    data = torch.tensor(np.stack([f.keypoints.data for f in frames]))
-    target, conf = data[..., :2], data[..., 2]
-    down = CAMERA.image_direction(target[:, 8], -floor_scene(cam2world).up_in_camera().double())
-    assert thighs_hanging(target, conf, down).tolist() == [True, False]
-    guessed = conf.clone()
-    guessed[:, [10, 13]] = 0.2
-    assert thighs_hanging(target, guessed, down).tolist() == [False, False]
-    for name, seated_start in [("prox", False), ("prox-hanging-thighs-guessed", True)]:
-        config = load_config(name)
-        assert config.start_other_thighs and config.start_candidates > 1
-        fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
-        target, conf = fitter._targets(frames)
-        assert fitter._guessed_legs(target, conf).tolist() == [seated_start, True], name
-        params, _ = fitter.initialise(frames)
-        with torch.no_grad():
-            keypoints = body(params, vertices=False).keypoints[:, :25]
-        seated = [_thighs_forward(k) for k in keypoints]
-        keep = config.start_candidates
-        assert any(seated[:keep]) == seated_start, name  # the standing frame's starts
-        assert any(seated[keep:]), name  # the seated frame keeps a seated start
-
-
 def test_cut_off_shins_are_drawn_plumb(body):
     """Seen by a tilted, rolled, off-centre camera, a leg reported down to the knee and
     no further costs 1 + the cosine of its shin with world up, times the trunk's
