@@ -311,7 +311,8 @@ def test_bone_chain_shares_one_set_of_offsets_and_handles_tiny_angles(body):
 @pytest.mark.parametrize("shared", [False, True])
 def test_skinning_is_annys(body, shared):
     """Skinning that skips a vertex's empty bone slots poses and differentiates as anny's
-    kernel, for a batch of bodies with rest vertices of their own or one set for all."""
+    kernel, for a batch of bodies with rest vertices of their own or one set for all; with
+    the rest vertices held, the bones' gradient is the same to the bit."""
     from anny.skinning import warp_skinning
 
     from prox_engine.body.skinning import Binding, linear_blend_skinning
@@ -325,7 +326,8 @@ def test_skinning_is_annys(body, shared):
     transforms = torch.eye(4).repeat(3, len(body.bone_labels), 1, 1)
     transforms[:, :, :3] += 0.2 * torch.randn(3, len(body.bone_labels), 3, 4)
     transforms.requires_grad_(True)
-    ours = linear_blend_skinning(rest, Binding(data["weights"], data["indices"]), transforms)
+    binding = Binding(data["weights"], data["indices"])
+    ours = linear_blend_skinning(rest, binding, transforms)
     theirs = warp_skinning.linear_blend_skinning(rest.expand(3, -1, -1), data["weights"],
                                                  data["indices"], transforms)
     torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-5)
@@ -334,6 +336,9 @@ def test_skinning_is_annys(body, shared):
              for posed in (ours, theirs)]
     for mine, reference in zip(*grads):
         torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-4)
+    held = linear_blend_skinning(rest.detach(), binding, transforms)
+    bones, = torch.autograd.grad((held * weights).sum(), [transforms])
+    assert torch.equal(bones, grads[0][1])
 
 
 @pytest.mark.parametrize("shared", [False, True])
