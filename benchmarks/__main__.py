@@ -34,6 +34,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-thighs-by-ankles", "prox-start-feet", "prox-sizeless-start",
            "prox-no-arm-restarts", "prox-no-forearm-restarts", "prox-no-leg-restarts",
            "prox-no-hip-restarts", "prox-no-knee-restarts", "prox-no-hidden-legs",
+           "prox-hanging-thighs-counted",
            "prox-unfitted-hidden-legs", "prox-hidden-legs-counted", "prox-no-hidden-shins",
            "prox-plumb-hidden-shins",
            "prox-standing-contacts",

@@ -38,6 +38,16 @@ class Camera:
         ray = self.backproject(pixels[:, 0], pixels[:, 1], torch.ones(len(pixels)))
         return ray / ray.norm(dim=-1, keepdim=True)
 
+    def image_direction(self, pixels: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
+        """Unit image directions (..., 2) in which a point seen at ``pixels`` (..., 2) moves
+        as it moves along the camera-space ``direction`` (3,), whatever its depth
+        (distortion ignored)."""
+        x = (pixels[..., 0] - self.cx) / self.fx
+        y = (pixels[..., 1] - self.cy) / self.fy
+        moved = torch.stack([self.fx * (direction[0] - x * direction[2]),
+                             self.fy * (direction[1] - y * direction[2])], -1)
+        return moved / moved.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+
     def in_image(self, pixels: torch.Tensor) -> torch.Tensor:
         """(...,) bool: whether ``pixels`` (..., 2) lie in the image (without its size in
         the calibration, twice the principal point)."""

@@ -283,6 +283,11 @@ class FitConfig:
     # legs made a seated person a standing one, metres off.
     upright_weight: float = 0.0
     upright_rho: float = 0.35
+    # The start choice of a frame with no ankle seen whose thighs are seen hanging
+    # (keypoints.thighs_hanging) counts these contact parts as missing for every start:
+    # cut off at the knees, standers with a wall behind them chose the other thighs' start
+    # (start_other_thighs), seated on nothing with the back and buttocks on the wall.
+    hanging_thighs_uncounted: list[str] = field(default_factory=list)
     # Every stage: a trunk within level_rho (radians) of the horizontal is drawn level
     # (keypoint_terms.trunk_terms, a reward, 0 beyond: a fit that never comes that near
     # level does not change at all): a lying trunk seen along the camera's rays was

@@ -18,9 +18,10 @@ from .body.by_frame import FRAME, by_frame, one_frame
 from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, ray_points_at, turned_onto_ray
-from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES,
+from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES, MID_HIP,
                         LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
-                        cut_legs, nothing_below_knees, side_swap, thighs_hidden, toes_unseen)
+                        cut_legs, nothing_below_knees, side_swap, thighs_hanging, thighs_hidden,
+                        toes_unseen)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .rescale import rescaled
@@ -111,13 +112,15 @@ class _Choice:
     ``after``, counting from 1) and by what (:meth:`Fitter._choose`): the objective,
     with the posture priors if ``priors``, the arms' keypoints if ``arms`` and the feet's
     but in the frames ``feet_left_out`` ((frames,) bool; None: none), plus the scene's
-    cost if ``by_scene``."""
+    cost if ``by_scene``, each frame's contact parts ``uncounted`` ((frames, P) bool;
+    None: none) counted as missing there."""
 
     after: int
     by_scene: bool = True
     priors: bool = True
     arms: bool = True
     feet_left_out: torch.Tensor | None = None
+    uncounted: torch.Tensor | None = None
 
 
 @dataclass
@@ -257,6 +260,19 @@ class Fitter:
         return (subset, None if penetration is None else (local[penetration[0]], penetration[1]),
                 normals)
 
+    def _hanging_uncounted(self, target: torch.Tensor, conf: torch.Tensor
+                           ) -> torch.Tensor | None:
+        """(B, P) bool: per frame (keypoints ``target`` (B, K, 2), the detector's
+        confidences ``conf`` (B, K)), the contact parts its start choice counts as missing
+        (``config.hanging_thighs_uncounted``, where no ankle is seen and the thighs are
+        seen hanging along world down); None where none is."""
+        parts = self._contact_mask(self.config.hanging_thighs_uncounted)
+        if not bool(parts.any()):
+            return None
+        down = self.camera.image_direction(target[:, MID_HIP], -self.up)
+        hanging = ~ankle_seen(conf) & thighs_hanging(target, conf, down)
+        return hanging[:, None] & parts if bool(hanging.any()) else None
+
     def _contact_mask(self, names: Sequence[str]) -> torch.Tensor:
         """(P,) bool over the contact parts the fit uses: which are among ``names``."""
         return torch.tensor([p in names for p in self.config.contact_parts
@@ -319,6 +335,7 @@ class Fitter:
         cfg = self.config
         feet_left_out = (thighs_hidden(conf) if warm_start is None and cfg.start_other_thighs
                          and cfg.start_thighs_hidden and not cfg.start_choice_feet else None)
+        uncounted = (self._hanging_uncounted(target, conf) if warm_start is None else None)
         conf[:, self.config.ignore_keypoints] = 0
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}
@@ -356,7 +373,8 @@ class Fitter:
                 params = {k: v[taken] for k, v in params.items()}
                 labels = [labels[r] for r in taken]
         choice = _Choice(self.config.start_stages, priors=self.config.start_choice_priors,
-                         arms=self.config.start_choice_arms, feet_left_out=feet_left_out)
+                         arms=self.config.start_choice_arms, feet_left_out=feet_left_out,
+                         uncounted=uncounted)
         rows_of = torch.tensor(counts)
         rows = _Rows(params, target.repeat_interleave(rows_of, 0),
                      conf.repeat_interleave(rows_of, 0), detected.repeat_interleave(rows_of, 0),
@@ -496,8 +514,10 @@ class Fitter:
             with torch.no_grad():
                 out = self.body(rows.params, vertices=False)
                 terms = {**terms, "data": self._data_term(stage, out, rows.target, conf)}
+        uncounted = (None if choice.uncounted is None else
+                     choice.uncounted.repeat_interleave(torch.tensor(counts), 0))
         return self._best_rows(rows.params, rows.detected, terms, counts, choice.by_scene,
-                               choice.priors)
+                               choice.priors, uncounted)
 
     def _best_rows(self, params: Params, detected: torch.Tensor,
                    terms: dict[str, torch.Tensor],
@@ -509,7 +529,7 @@ class Fitter:
         ``start_scene_weight`` times how badly each can meet the scene at its best scale
         (the body joints ``detected`` (rows, 25) as :meth:`_scale_search` reads them)
         and, with ``start_choice_size``, the size prior at that scale; the contact parts
-        ``uncounted`` ((P,) bool) count as missing for every row."""
+        ``uncounted`` ((P,) bool, or (rows, P)) count as missing."""
         score = sum(v for k, v in terms.items()
                     if (priors or k not in POSTURE_PRIORS) and k not in UNRANKED)
         if by_scene and self.config.start_scene_weight > 0 and self._scales_searched():
@@ -970,7 +990,7 @@ class Fitter:
         (:func:`scale_search.best_scale`), and the bodies' sizes as its size prior reads
         them (:meth:`_sizes`); with ``feet_carry``, bodies on their feet rest on them
         alone (:func:`scale_search.feet_carried`); the contact parts ``uncounted`` ((P,)
-        bool) count as missing for every body."""
+        bool for every body, or (B, P)) count as missing."""
         cfg, body = self.config, self.body
         with torch.no_grad():
             out = body(params)
@@ -987,7 +1007,7 @@ class Fitter:
         counted = (standing_counts(standing_legs(joints, detected, up), self.standing_parts)
                    if bool(self.standing_parts.any()) and cfg.scale_standing_feet else None)
         if uncounted is not None and bool(uncounted.any()):
-            counted = (torch.ones(len(joints), len(uncounted), dtype=torch.bool)
+            counted = (torch.ones(len(joints), uncounted.shape[-1], dtype=torch.bool)
                        if counted is None else counted) & ~uncounted
         sizes = self._sizes(params)
         feet = feet_carried(joints, detected, up) if feet_carry else None

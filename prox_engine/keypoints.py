@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -175,6 +176,31 @@ def ankle_seen(conf: torch.Tensor) -> torch.Tensor:
     tensor or an array): a frame cut off at the knees has neither, and its legs' posture
     is a guess."""
     return (conf[..., ANKLES] > 0).any(-1)
+
+
+# A thigh hangs in the image (thighs_hanging) within HANG_ANGLE degrees of world down and
+# at least HANG_LENGTH times as long as the trunk: a standing thigh is about as long as
+# the trunk; a seated one points toward the camera (short) or sideways.
+HANG_ANGLE, HANG_LENGTH = 30.0, 0.5
+
+
+def thighs_hanging(target: torch.Tensor, conf: torch.Tensor, down: torch.Tensor
+                   ) -> torch.Tensor:
+    """(B,) whether every thigh seen (mid-hip to a knee above HIDDEN: the hips' own
+    points may be left out of the data term) hangs along ``down`` (B, 2), world down in
+    the image at the mid-hip, and at least one is seen, from keypoints ``target``
+    (B, K, 2) and confidences ``conf`` (B, K); the trunk is mid-hip to mid-shoulder. A
+    frame cut off at the knees whose thighs hang is standing or kneeling upright."""
+    shoulders = list(SHOULDERS)
+    hip = target[:, MID_HIP]
+    thighs = target[:, KNEES] - hip[:, None]  # (B, 2, 2)
+    trunk = (target[:, shoulders].mean(1) - hip).norm(dim=-1)
+    length = thighs.norm(dim=-1)
+    along = (thighs * down[:, None]).sum(-1) / length.clamp_min(1e-9)
+    hangs = (along > math.cos(math.radians(HANG_ANGLE))) & (length > HANG_LENGTH * trunk[:, None])
+    seen = ((conf[:, KNEES] > HIDDEN) & (conf[:, [MID_HIP]] > 0)
+            & (conf[:, shoulders] > 0).all(-1, keepdim=True))
+    return seen.any(-1) & (hangs | ~seen).all(-1)
 
 
 def toes_unseen(seen: torch.Tensor) -> torch.Tensor:

@@ -223,6 +223,63 @@ def test_upright_term_spares_frames_cut_off_at_the_knees(body):
                                           [None, None], None)(out)
 
 
+def test_image_direction_is_a_world_direction_seen_from_any_depth():
+    """Seen by a tilted, rolled, off-centre camera, a point that moves a little along
+    world down moves in the image along Camera.image_direction of its pixel, whatever its
+    depth on the pixel's ray."""
+    cam2world = tilted_camera()
+    down = -floor_scene(cam2world).up_in_camera().double()
+    pixels = torch.tensor([[300.0, 900.0], [1500.0, 200.0]], dtype=torch.float64)
+    direction = CAMERA.image_direction(pixels, down)
+    for depth in (1.5, 4.0):
+        points = CAMERA.backproject(pixels[:, 0], pixels[:, 1], torch.full((2,), depth))
+        moved = CAMERA.project(points + 1e-4 * down) - CAMERA.project(points)
+        moved = moved / moved.norm(dim=-1, keepdim=True)
+        assert torch.allclose(moved, direction, atol=1e-4)
+    assert float((direction[0] - direction[1]).norm()) > 0.05  # it depends on the pixel
+
+
+def _cut_off_frame(body, cam2world: np.ndarray, posture: str) -> Frame:
+    """A mean body in ``posture`` on the floor at the camera's target, facing the camera
+    turned by 60 degrees, its keypoints projected and nothing below the knees reported."""
+    out, shift = _placed(body, body.init_params(1, posture), cam2world, math.radians(60))
+    frame = frame_of(world_to_camera(out.keypoints[0] + shift, cam2world))
+    frame.keypoints.data[FEET, 2] = 0.0
+    return frame
+
+
+def test_thighs_seen_hanging_leave_the_seated_parts_out_of_the_start_choice(body):
+    """Cut off below the knees and seen by a tilted, rolled, off-centre camera, a standing
+    body's thighs hang in the image along world down, a seated one's do not, and knees
+    reported as guesses (under HIDDEN) are not seen. `prox`'s start choice then counts the
+    back, buttocks and thighs as missing for the standing frame alone (a wall behind it
+    is no seat); `prox-hanging-thighs-counted` counts them for both."""
+    from prox_engine.keypoints import thighs_hanging
+
+    cam2world = tilted_camera()
+    frames = [_cut_off_frame(body, cam2world, p) for p in ("standing", "sitting")]
+    data = torch.tensor(np.stack([f.keypoints.data for f in frames]))
+    target, conf = data[..., :2], data[..., 2]
+    down = CAMERA.image_direction(target[:, 8], -floor_scene(cam2world).up_in_camera().double())
+    assert thighs_hanging(target, conf, down).tolist() == [True, False]
+    guessed = conf.clone()
+    guessed[:, [10, 13]] = 0.2
+    assert thighs_hanging(target, guessed, down).tolist() == [False, False]
+    seated_parts = {"back", "gluteus", "thighs"}
+    for name in ("prox", "prox-hanging-thighs-counted"):
+        config = load_config(name)
+        fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+        target, conf = fitter._targets(frames)
+        uncounted = fitter._hanging_uncounted(target, conf)
+        if name != "prox":
+            assert uncounted is None
+            continue
+        parts = [p for p in config.contact_parts if p in body.contact_parts]
+        assert [p for p, u in zip(parts, uncounted[0].tolist()) if u] == [
+            p for p in parts if p in seated_parts]
+        assert not bool(uncounted[1].any())
+
+
 def test_cut_off_shins_are_drawn_plumb(body):
     """Seen by a tilted, rolled, off-centre camera, a leg reported down to the knee and
     no further costs 1 + the cosine of its shin with world up, times the trunk's
