@@ -42,8 +42,8 @@ class Camera:
         """Unit image directions (..., 2) in which a point seen at ``pixels`` (..., 2) moves
         as it moves along the camera-space ``direction`` (3,), whatever its depth
         (distortion ignored)."""
-        x = (pixels[..., 0] - self.cx) / self.fx
-        y = (pixels[..., 1] - self.cy) / self.fy
+        x, y, _ = self.backproject(pixels[..., 0], pixels[..., 1],
+                                   torch.ones_like(pixels[..., 0])).unbind(-1)
         moved = torch.stack([self.fx * (direction[0] - x * direction[2]),
                              self.fy * (direction[1] - y * direction[2])], -1)
         return moved / moved.norm(dim=-1, keepdim=True).clamp_min(1e-9)

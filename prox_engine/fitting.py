@@ -184,10 +184,11 @@ class Fitter:
         self.on_stage = on_stage  # told each stage's name as it starts (progress, cancelling)
         self.contact_part_ids = [body.contact_parts[p] for p in config.contact_parts
                                  if p in body.contact_parts]
-        # (P,) bool over those parts: a standing body's, and those a hidden legs'
-        # ranking counts as missing
+        # (P,) bool over those parts: a standing body's, those a hidden legs' ranking
+        # counts as missing, and those a hanging-thighs frame's start choice does
         self.standing_parts = self._contact_mask(STANDING_PARTS)
         self.hidden_leg_parts = self._contact_mask(config.hidden_leg_uncounted)
+        self.hanging_thigh_parts = self._contact_mask(config.hanging_thighs_uncounted)
         self.carrying = carrying_vertices(body.contact_parts, body.num_vertices)
         # How deep each vertex of the scene terms rests inside a surface it touches
         # (config.soft_sink; None: on it) and may enter it unpenalised (one depth for all
@@ -266,12 +267,11 @@ class Fitter:
         confidences ``conf`` (B, K)), the contact parts its start choice counts as missing
         (``config.hanging_thighs_uncounted``, where no ankle is seen and the thighs are
         seen hanging along world down); None where none is."""
-        parts = self._contact_mask(self.config.hanging_thighs_uncounted)
-        if not bool(parts.any()):
+        if not bool(self.hanging_thigh_parts.any()):
             return None
         down = self.camera.image_direction(target[:, MID_HIP], -self.up)
         hanging = ~ankle_seen(conf) & thighs_hanging(target, conf, down)
-        return hanging[:, None] & parts if bool(hanging.any()) else None
+        return hanging[:, None] & self.hanging_thigh_parts if bool(hanging.any()) else None
 
     def _contact_mask(self, names: Sequence[str]) -> torch.Tensor:
         """(P,) bool over the contact parts the fit uses: which are among ``names``."""
@@ -335,7 +335,7 @@ class Fitter:
         cfg = self.config
         feet_left_out = (thighs_hidden(conf) if warm_start is None and cfg.start_other_thighs
                          and cfg.start_thighs_hidden and not cfg.start_choice_feet else None)
-        uncounted = (self._hanging_uncounted(target, conf) if warm_start is None else None)
+        uncounted = self._hanging_uncounted(target, conf) if warm_start is None else None
         conf[:, self.config.ignore_keypoints] = 0
         has_hands = any(f.keypoints.has_hands for f in frames)
         stage_seconds: dict[str, float] = {}

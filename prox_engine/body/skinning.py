@@ -5,8 +5,8 @@ adjoint warp derives from it) visits all nine slots: 0.34 ms forward and 0.8 bac
 scene terms' 7,500 vertices, a fifth of a scene evaluation. These kernels read each
 vertex's used slots from a compact list (:class:`Binding`: skipping empty slots in place
 still cost a third more) and differentiate by hand: the vertex's gradient is sum_i w_i
-R_i^T g (left out where the rest vertices are held, as while the shape is frozen: 0.5 ->
-0.3 ms a call), bone i's is w_i g [x; 1]^T."""
+R_i^T g (left out where the rest vertices are held, as while the shape is frozen: a
+full-mesh forward and backward 0.12-0.18 ms faster), bone i's is w_i g [x; 1]^T."""
 from __future__ import annotations
 
 import torch
