@@ -17,7 +17,7 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .body.by_frame import FRAME, by_frame, one_frame
 from .camera import Camera
 from .config import FitConfig, Stage
-from .geometry import VertexNormals, ray_points_at, turned_onto_ray
+from .geometry import VertexNormals, ray_points_at, sum_into, turned_onto_ray
 from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES, MID_HIP,
                         LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
                         cut_legs, nothing_below_knees, side_swap, thighs_hanging, thighs_hidden,
@@ -857,15 +857,16 @@ class Fitter:
     def _keypoint_objective(self, stage: Stage, params: Params, free: list[str],
                             target: torch.Tensor, held: _Held, previous: torch.Tensor | None
                             ) -> KeypointObjective | None:
-        """The objective of a stage that reads only the keypoints and the pose, the shape
-        held, worked out without autograd (:mod:`keypoint_objective`) with what stays put
-        while it runs (``held``) and, given the ``previous`` frame's keypoints, the temporal
-        term; None for any other stage, or a body model without a
-        :meth:`BodyModel.keypoint_path`."""
-        if (any(stage.weights.get(t, 0) > 0 for t in GRAPH_TERMS)
-                or set(free) & set(self.body.shape_group())):
+        """The objective of a stage that reads only the keypoints, the pose and the scene
+        terms' vertices, the shape held, worked out without autograd
+        (:mod:`keypoint_objective`) with what stays put while it runs (``held``) and, given
+        the ``previous`` frame's keypoints, the temporal term; None for any other stage,
+        or a body model without a :meth:`BodyModel.keypoint_path`."""
+        mesh = self._mesh_read(stage)
+        if (any(stage.weights.get(t, 0) > 0 for t in GRAPH_TERMS if t not in SCENE_TERMS)
+                or mesh is True or set(free) & set(self.body.shape_group())):
             return None
-        path = self.body.keypoint_path(params)
+        path = self.body.keypoint_path(params, mesh or None)
         if path is None:
             return None
         cfg = self.config
@@ -894,7 +895,36 @@ class Fitter:
             return value, slope
 
         return KeypointObjective(path, free, posed, columns.float().numpy(), priors,
-                                 fixed.float().numpy(), self._counted)
+                                 fixed.float().numpy(), self._counted,
+                                 self._scene_terms(stage) if mesh else None)
+
+    def _scene_terms(self, stage: Stage
+                     ) -> Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
+        """A stage's scene terms as :meth:`_terms` weighs them, without autograd: the scene
+        terms' vertices (B, V, 3) -> their sum (B,) and its gradient in them."""
+        w, cfg = stage.weights, self.config
+
+        def scene_terms(vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            total, slopes, read = vertices.new_zeros(len(vertices)), [], []
+            if w.get("penetration", 0) > 0:
+                ids, counts = self.penetration_vertices
+                value, slope = losses.penetration_value_and_slope(
+                    vertices[:, ids], self.scene, self.penetration_tolerance, counts)
+                total += w["penetration"] * value
+                slopes.append(w["penetration"] * slope)
+                read.append(ids)
+            if w.get("contact", 0) > 0 and self.contact_normals is not None:
+                normals = self.contact_normals
+                value, slope = losses.contact_value_and_slope(
+                    vertices[:, normals.ids], normals(vertices), self.scene, cfg.contact_rho,
+                    cfg.contact_max_angle, cfg.contact_max_distance, self.contact_sink)
+                total += w["contact"] * value
+                slopes.append(w["contact"] * slope)
+                read.append(normals.ids)
+            if not slopes:
+                return total, torch.zeros_like(vertices)
+            return total, sum_into(torch.cat(slopes, 1), torch.cat(read), vertices.shape[1])
+        return scene_terms
 
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
                    conf: torch.Tensor, depth: list, previous: torch.Tensor | None,

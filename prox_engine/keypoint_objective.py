@@ -1,4 +1,4 @@
-"""A keypoint stage's objective with its gradient worked out directly, without autograd.
+"""A stage's objective with its gradient worked out directly, without autograd.
 
 The keypoint stages (global, body, detail, final: about 490 of a frame's 580 body rows)
 read the keypoints and the pose alone. Through autograd each evaluation built and walked a graph
@@ -6,7 +6,11 @@ of some forty nodes, about 1 ms, most of it dispatch around the kernels. Here th
 keypoint path (:meth:`BodyModel.keypoint_path`) poses the keypoints in its own kernels,
 the keypoint terms' kernel gives their values and slopes (:func:`posed_values`), and the
 slopes go back through the path's kernels: the same sum as :meth:`Fitter._terms`' terms,
-term for term (tests/test_keypoint_objective.py)."""
+term for term (tests/test_keypoint_objective.py). A scene stage with the shape held (a
+warm-started frame's contact stage) goes the same way: the path skins the scene terms'
+vertices too, the terms give their values and slopes in them (``mesh``), and those go back
+through the skinning; through autograd, its hundred operations cost as much again as its
+kernels."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -23,14 +27,18 @@ class KeypointObjective(Direct):
     and, in a warm-started frame, the temporal term; from ``posed``: keypoints -> values
     (B, C) and slopes (B, C, K, 3)) weighed by ``columns`` (B, C), plus the ``priors`` of
     the ``path`` (name -> weight), plus
-    ``fixed`` (B,): the terms that do not move in this stage. Gradients in the ``free``
-    parameters; ``count`` is told the rows of each evaluation."""
+    ``fixed`` (B,): the terms that do not move in this stage, plus, for a path with
+    vertices, the ``mesh`` terms (vertices -> their weighted sum (B,) and its gradient in
+    them). Gradients in the ``free`` parameters; ``count`` is told the rows of each
+    evaluation."""
 
     def __init__(self, path: KeypointPath, free: list[str],
                  posed: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
                  columns: np.ndarray, priors: dict[str, float], fixed: np.ndarray,
-                 count: Callable[[int], None]) -> None:
-        self.path, self.free, self.posed = path, free, posed
+                 count: Callable[[int], None],
+                 mesh: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None
+                 ) -> None:
+        self.path, self.free, self.posed, self.mesh = path, free, posed, mesh
         self.columns, self.priors, self.fixed, self.count = columns, priors, fixed, count
 
     def evaluate(self) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -38,7 +46,11 @@ class KeypointObjective(Direct):
         value, slope = self.posed(keypoints)
         total = (value.numpy() * self.columns).sum(1) + self.fixed
         keypoint_grad = np.einsum("bc,bckd->bkd", self.columns, slope.numpy())
-        grads = dict(self.path.gradients(torch.from_numpy(keypoint_grad)))
+        vertex_grad = None
+        if self.mesh is not None:
+            mesh_value, vertex_grad = self.mesh(self.path.vertices)
+            total = total + mesh_value.numpy()
+        grads = dict(self.path.gradients(torch.from_numpy(keypoint_grad), vertex_grad))
         found = self.path.priors()
         for name, weight in self.priors.items():
             value, slopes = found[name]

@@ -55,13 +55,22 @@ def penetration_energy(points: torch.Tensor, scene: Scene,
     beyond the tolerance: exact (from the triangles) within two voxels of a surface, where
     furniture thinner than a voxel would otherwise be missed, else from the grid. Worked
     out with its gradient, without autograd (:func:`with_gradient`)."""
+    return with_gradient(points, *penetration_value_and_slope(points, scene, tolerance,
+                                                              weights))
+
+
+def penetration_value_and_slope(points: torch.Tensor, scene: Scene,
+                                tolerance: float | torch.Tensor = 0.0,
+                                weights: torch.Tensor | None = None
+                                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`penetration_energy` (B,) and its gradient in the points (B, N, 3)."""
     depth, slope = scene.penetration_depth(points, exact_band=2 * scene.sdf.voxel_size)
     depth = torch.relu(depth - tolerance)
     energy = depth ** 2 + depth
     push = 2 * depth + (depth > 0)  # d energy / d depth
     if weights is not None:
         energy, push = energy * weights, push * weights
-    return with_gradient(points, energy.sum(-1), push[..., None] * slope)
+    return energy.sum(-1), push[..., None] * slope
 
 
 # The contact parts of flesh a body rests on (a seated body's buttocks and thighs, a lying
@@ -126,13 +135,22 @@ def contact_energy(points: torch.Tensor, normals: torch.Tensor, scene: Scene, rh
     """Robust distance to contact of the points (B, N, 3) that qualify for it
     (:func:`contact_distances`, touching ``sink`` deep), averaged over those points as in
     PROX; 0 when none qualifies. Worked out with its gradient (:func:`with_gradient`)."""
+    return with_gradient(points, *contact_value_and_slope(points, normals, scene, rho,
+                                                          max_angle_deg, max_distance, sink))
+
+
+def contact_value_and_slope(points: torch.Tensor, normals: torch.Tensor, scene: Scene,
+                            rho: float, max_angle_deg: float, max_distance: float,
+                            sink: torch.Tensor | None = None
+                            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`contact_energy` (B,) and its gradient in the points (B, N, 3)."""
     dist, valid, slope = contact_distances(points, normals, scene, max_angle_deg, max_distance,
                                            sink)
     count = valid.sum(1, keepdim=True).clamp_min(1)
     squared = dist ** 2
     energy = (gmof(squared, rho) / rho ** 2 * valid).sum(1) / count[:, 0]
     push = valid * (2 * dist / (squared + rho ** 2) ** 2 * rho ** 2) / count  # d / d dist
-    return with_gradient(points, energy, push[..., None] * slope)
+    return energy, push[..., None] * slope
 
 
 def self_penetration(out: BodyOutput, body: BodyModel) -> torch.Tensor:

@@ -93,15 +93,47 @@ def test_the_direct_objective_is_the_autograd_objective(body, sequence):
                                    atol=1e-5 * float(want.abs().max()), err_msg=name)
 
 
-@pytest.mark.parametrize("term", ["penetration", "contact", "self_penetration", "depth",
-                                  "shape free"])
-def test_stages_that_read_more_than_keypoints_and_pose_go_through_autograd(body, term):
-    """The mesh, the collision spheres or a free shape: autograd."""
+def test_the_direct_scene_stage_is_the_autograd_scene_stage(body):
+    """A warm-started frame's contact stage (the shape held, the scene terms on): the
+    scene terms' vertices skinned by the keypoint path and their gradients taken back
+    through the skinning give autograd's sums and gradients."""
+    cam2world = tilted_camera()
+    fitter = Fitter(body, CAMERA, load_config("prox"),
+                    floor_scene(cam2world, height=0.05))  # the feet inside
+    stage = Stage("contact", STAGE.weights | {"penetration": 3000.0, "contact": 300.0},
+                  optimize_shape=False, optimize_hands=True)
+    params, target, conf = _rows(body, cam2world)
+    previous = _previous(body, params)
+    for name in FREE:
+        params[name].requires_grad_(True)
+    direct = fitter._keypoint_objective(stage, params, FREE, target,
+                                        fitter._held(stage, params, conf, FREE), previous)
+    assert isinstance(direct, KeypointObjective) and direct.mesh is not None
+    rows, grads = direct.evaluate()
+
+    terms = fitter._terms(stage, params, target, conf, [None] * 3, previous, FREE)(
+        body(params, vertices=fitter.scene_subset, spheres=False))
+    for name in ("penetration", "contact"):
+        assert bool((terms[name] != 0).any()), name  # the standing bodies meet it
+    total = torch.stack(list(terms.values())).sum(0)
+    expected = torch.autograd.grad(total.sum(), [params[n] for n in FREE])
+    np.testing.assert_allclose(rows, total.detach().numpy(), rtol=1e-5)
+    for name, got, want in zip(FREE, grads, expected):
+        assert got.shape == want.shape, name
+        np.testing.assert_allclose(got, want.numpy(), rtol=1e-4,
+                                   atol=1e-5 * float(want.abs().max()), err_msg=name)
+
+
+@pytest.mark.parametrize("term", ["self_penetration", "depth", "shape free"])
+def test_stages_that_read_more_than_keypoints_pose_and_scene_terms_go_through_autograd(
+        body, term):
+    """The whole mesh, the collision spheres or a free shape: autograd."""
     cam2world = tilted_camera()
     fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
     params, target, conf = _rows(body, cam2world)
     free = [*FREE, "shape"] if term == "shape free" else FREE
-    weights = dict(STAGE.weights) | ({} if term == "shape free" else {term: 1.0})
+    weights = dict(STAGE.weights) | ({"penetration": 1.0} if term == "shape free"
+                                     else {term: 1.0})
     stage = Stage("s", weights)
     assert fitter._keypoint_objective(stage, params, free, target,
                                       fitter._held(stage, params, conf, free), None) is None

@@ -697,8 +697,9 @@ class AnnyBody(BodyModel):
         offset = anchors - self.anchor_weight[:, None] * held[..., :3, 3]
         return (held[..., :3, :3].transpose(-1, -2) @ offset[..., None])[..., 0]
 
-    def keypoint_path(self, params: Params) -> KeypointPath:
-        return AnnyKeypointPath(self, params)
+    def keypoint_path(self, params: Params, vertices: VertexSubset | None = None
+                      ) -> KeypointPath:
+        return AnnyKeypointPath(self, params, vertices)
 
     def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:
         """The vertices ``ids`` with their rest template, blendshapes and skinning weights

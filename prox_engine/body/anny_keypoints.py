@@ -1,10 +1,13 @@
-"""anny's keypoints and posture priors with their gradients, without autograd.
+"""anny's keypoints (and a vertex subset's) and posture priors with their gradients,
+without autograd.
 
 A keypoint stage reads nothing of the body but its keypoints and its pose. Through torch,
 an evaluation was some forty autograd nodes and two hundred operations, each a few
 microseconds of dispatch around a few nanoseconds of arithmetic: about 1 ms, of which the
 bone chain's and the anchors' kernels took a tenth. Here those kernels run on buffers
-held for the stage, and the priors are numpy on the pose's hundred numbers."""
+held for the stage, and the priors are numpy on the pose's hundred numbers. A scene stage
+with the shape held reads the scene terms' vertices too: the skinning kernels pose them
+and take their gradient back to the bones' poses."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -13,22 +16,31 @@ import numpy as np
 import torch
 
 from .anchored_points import _PLACE, _PLACE_GRAD
-from .base import KeypointPath, Params
+from .base import KeypointPath, Params, VertexSubset
 from .by_frame import FRAME
 from .bone_chain import _POSE, _POSE_GRAD
+from .skinning import linear_blend_skinning, skinning_gradients
 
 if TYPE_CHECKING:
     from .anny_body import AnnyBody
 
 
 class AnnyKeypointPath(KeypointPath):
-    """The keypoints of anny bodies with the shape of ``params`` held (:meth:`pose`) and
-    the parameters' gradients from the keypoints' (:meth:`gradients`), on ``params``'
-    current values; the posture priors as :class:`AnnyBody`'s (:meth:`priors`)."""
+    """The keypoints (and the ``vertices`` subset's, skinned as :class:`AnnyBody` skins
+    them) of anny bodies with the shape of ``params`` held (:meth:`pose`) and the
+    parameters' gradients from theirs (:meth:`gradients`), on ``params``' current values;
+    the posture priors as :class:`AnnyBody`'s (:meth:`priors`)."""
 
-    def __init__(self, body: AnnyBody, params: Params) -> None:
+    def __init__(self, body: AnnyBody, params: Params,
+                 vertices: VertexSubset | None = None) -> None:
         with torch.no_grad():
-            rest = body._rest(params["shape"], None, frames=params.get(FRAME))
+            rest = body._rest(params["shape"], vertices, frames=params.get(FRAME))
+        self.skeleton, self.subset = body.skeleton, vertices
+        if vertices is not None:
+            self.rest_vertices = rest[vertices].detach().float().contiguous()
+            self.bone_poses = rest["bone_poses"].detach().float()
+        self._vertices: torch.Tensor | None = None
+        self.transforms = torch.empty(0)
         self.chain, self.layout = body.skeleton.chain, body.anchored
         self.offsets = rest["offsets"].detach().float().contiguous()
         self.anchors = rest["local_anchors"].detach().float().contiguous()
@@ -58,9 +70,18 @@ class AnnyKeypointPath(KeypointPath):
         layout = self.layout
         _PLACE(self.keypoints.shape[:2], self.poses, self.anchors, layout.weight, layout.slot,
                layout.start, layout.pair, layout.head, self.keypoints)
+        if self.subset is not None:
+            self.transforms = self.skeleton.transforms(self.poses, self.bone_poses)[0]
+            self._vertices = linear_blend_skinning(self.rest_vertices,
+                                                   self.subset.data["binding"], self.transforms)
         return self.keypoints
 
-    def gradients(self, keypoint_grad: torch.Tensor) -> dict[str, np.ndarray]:
+    @property
+    def vertices(self) -> torch.Tensor | None:
+        return self._vertices
+
+    def gradients(self, keypoint_grad: torch.Tensor, vertex_grad: torch.Tensor | None = None
+                  ) -> dict[str, np.ndarray]:
         layout = self.layout
         for buffer in (self.pose_grad, self.anchor_grad, self.rotvec_grad, self.transl_grad,
                        self.offset_grad):
@@ -68,6 +89,8 @@ class AnnyKeypointPath(KeypointPath):
         _PLACE_GRAD(keypoint_grad.shape[:2], self.poses, self.anchors, layout.weight,
                     layout.slot, layout.start, layout.pair, layout.head, keypoint_grad,
                     self.pose_grad, self.anchor_grad)
+        if vertex_grad is not None:
+            self._add_skinning_gradients(vertex_grad)
         _POSE_GRAD(len(self.rotvecs), self.rotvecs, self.transl, self.offsets,
                    *self.chain.structure, self.poses, self.pose_grad, self.rotvec_grad,
                    self.transl_grad, self.offset_grad)
@@ -75,6 +98,20 @@ class AnnyKeypointPath(KeypointPath):
         return {"global_orient": rotvec[:, 0], "body_pose": rotvec[:, self._body_slots],
                 "hand_pose": rotvec[:, self._body_slots.stop:],
                 "transl": self.transl_grad.numpy()}
+
+    def _add_skinning_gradients(self, vertex_grad: torch.Tensor) -> None:
+        """Add to the poses' gradient (depth order) what the subset's vertices give, back
+        through the skinning transforms T = [R R0^T | t - R R0^T h0] of the posed poses
+        [R | t] and the rest poses [R0 | h0] (:meth:`AnnySkeleton.transforms`)."""
+        transform_grad, _ = skinning_gradients(self.rest_vertices, self.subset.data["binding"],
+                                               self.transforms, vertex_grad)
+        rotation_grad, shift_grad = transform_grad[..., :3, :3], transform_grad[..., :3, 3]
+        rest_rotation, rest_head = self.bone_poses[..., :3, :3], self.bone_poses[..., :3, 3]
+        rotation_grad = rotation_grad - shift_grad[..., :, None] * rest_head[..., None, :]
+        pose_grad = self.pose_grad[:, self.skeleton.inverse]  # bone order
+        pose_grad[..., :3, :3] += rotation_grad @ rest_rotation
+        pose_grad[..., :3, 3] += shift_grad
+        self.pose_grad[:, self.skeleton.inverse] = pose_grad
 
     def priors(self) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
         pose, hands = self.params["body_pose"], self.params["hand_pose"]

@@ -36,9 +36,10 @@ class VertexSubset:
 
 
 class KeypointPath(ABC):
-    """A batch of bodies' keypoints and posture priors with their gradients, worked out
-    without autograd on the current values of the parameters it was made for (their
-    memory, as the optimiser writes it), the shape held: what a keypoint stage reads
+    """A batch of bodies' keypoints (and, made with a vertex subset, those vertices) and
+    posture priors with their gradients, worked out without autograd on the current values
+    of the parameters it was made for (their memory, as the optimiser writes it), the
+    shape held: what a keypoint stage reads, or with the subset a scene stage
     (:meth:`BodyModel.keypoint_path`). Buffers are reused: each result holds until the
     next call."""
 
@@ -46,10 +47,19 @@ class KeypointPath(ABC):
     def pose(self) -> torch.Tensor:
         """The keypoints (B, K, 3) float32, as :meth:`BodyModel.forward`'s."""
 
+    @property
     @abstractmethod
-    def gradients(self, keypoint_grad: torch.Tensor) -> dict[str, np.ndarray]:
+    def vertices(self) -> torch.Tensor | None:
+        """The subset's vertices (B, V, 3) float32 at the last :meth:`pose`, as
+        :meth:`BodyModel.forward`'s; None for a path made without a subset."""
+
+    @abstractmethod
+    def gradients(self, keypoint_grad: torch.Tensor, vertex_grad: torch.Tensor | None = None
+                  ) -> dict[str, np.ndarray]:
         """Per pose parameter, the gradient (float32, its shape) of a loss whose gradient
-        in the keypoints of the last :meth:`pose` is ``keypoint_grad`` (B, K, 3) float32."""
+        in the keypoints of the last :meth:`pose` is ``keypoint_grad`` (B, K, 3) and in its
+        :attr:`vertices` ``vertex_grad`` (B, V, 3) (None: the loss does not read them),
+        float32."""
 
     @abstractmethod
     def priors(self) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
@@ -95,10 +105,11 @@ class BodyModel(ABC, torch.nn.Module):
         for the optimisation to go on over those rows alone."""
         yield lambda rows: None
 
-    def keypoint_path(self, params: Params) -> KeypointPath | None:
-        """The keypoints and posture priors of ``params`` (their shape held) with their
-        gradients, without autograd; None (the default): the model has none, and its
-        stages go through autograd."""
+    def keypoint_path(self, params: Params, vertices: VertexSubset | None = None
+                      ) -> KeypointPath | None:
+        """The keypoints (and the ``vertices`` subset) and posture priors of ``params``
+        (their shape held) with their gradients, without autograd; None (the default): the
+        model has none, and its stages go through autograd."""
         return None
 
     def vertex_subset(self, ids: torch.Tensor) -> VertexSubset:

@@ -95,15 +95,25 @@ class _Skinned(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         rest, transforms = ctx.saved_tensors
-        binding = ctx.binding
-        wanted = ctx.needs_input_grad[0]
-        rest_grad = torch.empty(len(transforms) if wanted else 1, *rest.shape[1:])
-        transform_grad = torch.zeros_like(transforms)
-        _SKIN_GRAD((len(transforms), rest.shape[1]), rest, binding.start, binding.bones,
-                   binding.weights, transforms, grad.float().contiguous(), int(wanted),
-                   rest_grad, transform_grad)
-        if not wanted:
-            return None, None, transform_grad
-        if len(rest) != len(transforms):  # one set of rest vertices for every body
-            rest_grad = rest_grad.sum(0, keepdim=True)
+        transform_grad, rest_grad = skinning_gradients(rest, ctx.binding, transforms, grad,
+                                                       ctx.needs_input_grad[0])
         return rest_grad, None, transform_grad
+
+
+def skinning_gradients(rest: torch.Tensor, binding: Binding, transforms: torch.Tensor,
+                       grad: torch.Tensor, rest_wanted: bool = False
+                       ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The gradients in the ``transforms`` (B, J, 4, 4) and, if ``rest_wanted``, in the
+    ``rest`` vertices (as given: B or 1, V, 3; else None) of a loss whose gradient in the
+    posed vertices of :func:`linear_blend_skinning` is ``grad`` (B, V, 3); float32,
+    contiguous arguments."""
+    rest_grad = torch.empty(len(transforms) if rest_wanted else 1, *rest.shape[1:])
+    transform_grad = torch.zeros_like(transforms)
+    _SKIN_GRAD((len(transforms), rest.shape[1]), rest, binding.start, binding.bones,
+               binding.weights, transforms, grad.float().contiguous(), int(rest_wanted),
+               rest_grad, transform_grad)
+    if not rest_wanted:
+        return transform_grad, None
+    if len(rest) != len(transforms):  # one set of rest vertices for every body
+        rest_grad = rest_grad.sum(0, keepdim=True)
+    return transform_grad, rest_grad
