@@ -64,6 +64,19 @@ def _previous(body, params: dict[str, torch.Tensor]) -> torch.Tensor:
         return body(moved, vertices=False).keypoints
 
 
+def _assert_autograd_agrees(rows: np.ndarray, grads: list[np.ndarray],
+                            terms: dict[str, torch.Tensor], params: dict[str, torch.Tensor]
+                            ) -> None:
+    """The direct objective's row sums and gradients are autograd's, of the ``terms``."""
+    total = torch.stack(list(terms.values())).sum(0)
+    expected = torch.autograd.grad(total.sum(), [params[n] for n in FREE])
+    np.testing.assert_allclose(rows, total.detach().numpy(), rtol=1e-5)
+    for name, got, want in zip(FREE, grads, expected):
+        assert got.shape == want.shape, name
+        np.testing.assert_allclose(got, want.numpy(), rtol=1e-4,
+                                   atol=1e-5 * float(want.abs().max()), err_msg=name)
+
+
 @pytest.mark.parametrize("sequence", [False, True])
 def test_the_direct_objective_is_the_autograd_objective(body, sequence):
     cam2world = tilted_camera()
@@ -84,13 +97,7 @@ def test_the_direct_objective_is_the_autograd_objective(body, sequence):
     for name in ("upright", "level", "plumb_shins", "shape", "hand_prior", "bending",
                  *(["temporal"] if sequence else [])):
         assert bool((terms[name] != 0).any()), name  # every term takes part
-    total = torch.stack(list(terms.values())).sum(0)
-    expected = torch.autograd.grad(total.sum(), [params[n] for n in FREE])
-    np.testing.assert_allclose(rows, total.detach().numpy(), rtol=1e-5)
-    for name, got, want in zip(FREE, grads, expected):
-        assert got.shape == want.shape, name
-        np.testing.assert_allclose(got, want.numpy(), rtol=1e-4,
-                                   atol=1e-5 * float(want.abs().max()), err_msg=name)
+    _assert_autograd_agrees(rows, grads, terms, params)
 
 
 def test_the_direct_scene_stage_is_the_autograd_scene_stage(body):
@@ -115,13 +122,7 @@ def test_the_direct_scene_stage_is_the_autograd_scene_stage(body):
         body(params, vertices=fitter.scene_subset, spheres=False))
     for name in ("penetration", "contact"):
         assert bool((terms[name] != 0).any()), name  # the standing bodies meet it
-    total = torch.stack(list(terms.values())).sum(0)
-    expected = torch.autograd.grad(total.sum(), [params[n] for n in FREE])
-    np.testing.assert_allclose(rows, total.detach().numpy(), rtol=1e-5)
-    for name, got, want in zip(FREE, grads, expected):
-        assert got.shape == want.shape, name
-        np.testing.assert_allclose(got, want.numpy(), rtol=1e-4,
-                                   atol=1e-5 * float(want.abs().max()), err_msg=name)
+    _assert_autograd_agrees(rows, grads, terms, params)
 
 
 @pytest.mark.parametrize("term", ["self_penetration", "depth", "shape free"])
