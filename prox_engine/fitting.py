@@ -17,7 +17,7 @@ from .body.base import BodyModel, BodyOutput, Params, VertexSubset
 from .body.by_frame import FRAME, by_frame, one_frame
 from .camera import Camera
 from .config import FitConfig, Stage
-from .geometry import VertexNormals, ray_points_at, sum_into, turned_onto_ray
+from .geometry import VertexNormals, picked, ray_points_at, sum_into, turned_onto_ray
 from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES, MID_HIP,
                         LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
                         cut_legs, nothing_below_knees, side_swap, thighs_hanging, thighs_hidden,
@@ -837,14 +837,10 @@ class Fitter:
             if w.get("self_penetration", 0) > 0:
                 values["self_penetration"] = (w["self_penetration"]
                                               * losses.self_penetration(out, body))
-            if w.get("penetration", 0) > 0:
-                values["penetration"] = w["penetration"] * losses.penetration(
-                    self._scene_view(out), *self.penetration_vertices, self.scene,
-                    self.penetration_tolerance)
-            if w.get("contact", 0) > 0 and self.contact_normals is not None:
-                values["contact"] = w["contact"] * losses.contact(
-                    self._scene_view(out), self.scene, self.contact_normals, cfg.contact_rho,
-                    cfg.contact_max_angle, cfg.contact_max_distance, self.contact_sink)
+            if any(w.get(t, 0) > 0 for t in SCENE_TERMS):
+                for name, (points, _, value, slope) in self._scene_slopes(
+                        stage, self._scene_view(out).vertices).items():
+                    values[name] = w[name] * with_gradient(points, value, slope)
             if w.get("depth", 0) > 0 and any(d is not None for d in depth):
                 values["depth"] = w["depth"] * losses.depth_data(out, body, depth,
                                                                  cfg.depth_rho)
@@ -902,29 +898,43 @@ class Fitter:
                      ) -> Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
         """A stage's scene terms as :meth:`_terms` weighs them, without autograd: the scene
         terms' vertices (B, V, 3) -> their sum (B,) and its gradient in them."""
-        w, cfg = stage.weights, self.config
+        w = stage.weights
 
         def scene_terms(vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             total, slopes, read = vertices.new_zeros(len(vertices)), [], []
-            if w.get("penetration", 0) > 0:
-                ids, counts = self.penetration_vertices
-                value, slope = losses.penetration_value_and_slope(
-                    vertices[:, ids], self.scene, self.penetration_tolerance, counts)
-                total += w["penetration"] * value
-                slopes.append(w["penetration"] * slope)
+            for name, (_, ids, value, slope) in self._scene_slopes(stage, vertices).items():
+                total += w[name] * value
+                slopes.append(w[name] * slope)
                 read.append(ids)
-            if w.get("contact", 0) > 0 and self.contact_normals is not None:
-                normals = self.contact_normals
-                value, slope = losses.contact_value_and_slope(
-                    vertices[:, normals.ids], normals(vertices), self.scene, cfg.contact_rho,
-                    cfg.contact_max_angle, cfg.contact_max_distance, self.contact_sink)
-                total += w["contact"] * value
-                slopes.append(w["contact"] * slope)
-                read.append(normals.ids)
             if not slopes:
                 return total, torch.zeros_like(vertices)
             return total, sum_into(torch.cat(slopes, 1), torch.cat(read), vertices.shape[1])
         return scene_terms
+
+    def _scene_slopes(self, stage: Stage, vertices: torch.Tensor
+                      ) -> dict[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor,
+                                           torch.Tensor]]:
+        """Each scene term the stage weighs, of the scene terms' vertices (B, V, 3),
+        unweighted: the vertices it reads (picked, differentiable as ``vertices`` are), their
+        indices, its value (B,) and its gradient in them (B, N, 3). Penetration: each vertex
+        counted as many times as :func:`losses.penetration_vertices` says, tolerated as deep
+        as its part may enter; contact: the contact vertices, touching as deep as they
+        sink."""
+        w, cfg, found = stage.weights, self.config, {}
+        if w.get("penetration", 0) > 0:
+            ids, counts = self.penetration_vertices
+            points = picked(vertices, ids)
+            found["penetration"] = (points, ids, *losses.penetration_value_and_slope(
+                points, self.scene, self.penetration_tolerance, counts))
+        if w.get("contact", 0) > 0 and self.contact_normals is not None:
+            normals = self.contact_normals
+            with torch.no_grad():  # the normals only choose which vertices qualify
+                facing = normals(vertices)
+            points = picked(vertices, normals.ids)
+            found["contact"] = (points, normals.ids, *losses.contact_value_and_slope(
+                points, facing, self.scene, cfg.contact_rho, cfg.contact_max_angle,
+                cfg.contact_max_distance, self.contact_sink))
+        return found
 
     def _run_stage(self, stage: Stage, params: Params, free: list[str], target: torch.Tensor,
                    conf: torch.Tensor, depth: list, previous: torch.Tensor | None,

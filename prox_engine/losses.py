@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from .body.base import BodyModel, BodyOutput
-from .geometry import VertexNormals, grid_subsample, picked, vertex_normals
+from .geometry import grid_subsample, vertex_normals
 from .keypoints import BODY, MID_HIP
 from .scene import Scene
 from .with_gradient import with_gradient
@@ -36,14 +36,6 @@ def penetration_vertices(body: BodyModel, spacing: float, rest: torch.Tensor | N
             rest = body(body.init_params(1)).vertices[0]
     kept, counts = grid_subsample(rest[ids], spacing)
     return ids[kept], counts.float()
-
-
-def penetration(out: BodyOutput, ids: torch.Tensor, weights: torch.Tensor, scene: Scene,
-                tolerance: float | torch.Tensor = 0.0) -> torch.Tensor:
-    """Penetration energy (B,) of the body vertices ``ids``, each counted ``weights``
-    times (:func:`penetration_vertices`) and tolerated ``tolerance`` deep (one for all, or
-    one per vertex)."""
-    return penetration_energy(picked(out.vertices, ids), scene, tolerance, weights)
 
 
 def penetration_energy(points: torch.Tensor, scene: Scene,
@@ -90,17 +82,6 @@ def part_vertices(contact_parts: dict[str, torch.Tensor], parts: tuple[str, ...]
         if part in contact_parts:
             mask[contact_parts[part]] = True
     return mask
-
-
-def contact(out: BodyOutput, scene: Scene, normals: VertexNormals, rho: float,
-            max_angle_deg: float, max_distance: float, sink: torch.Tensor | None = None
-            ) -> torch.Tensor:
-    """Contact energy of the body's contact vertices (``normals.ids``, each touching
-    ``sink`` deep: :func:`contact_distances`), (B,)."""
-    with torch.no_grad():  # the normals only choose which vertices qualify
-        facing = normals(out.vertices)
-    return contact_energy(picked(out.vertices, normals.ids), facing, scene, rho,
-                          max_angle_deg, max_distance, sink)
 
 
 def contact_distances(points: torch.Tensor, normals: torch.Tensor, scene: Scene,

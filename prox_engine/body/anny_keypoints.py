@@ -100,18 +100,11 @@ class AnnyKeypointPath(KeypointPath):
                 "transl": self.transl_grad.numpy()}
 
     def _add_skinning_gradients(self, vertex_grad: torch.Tensor) -> None:
-        """Add to the poses' gradient (depth order) what the subset's vertices give, back
-        through the skinning transforms T = [R R0^T | t - R R0^T h0] of the posed poses
-        [R | t] and the rest poses [R0 | h0] (:meth:`AnnySkeleton.transforms`)."""
+        """Add to the poses' gradient what the subset's vertices give, back through the
+        skinning and its transforms (:meth:`AnnySkeleton.pose_gradient`)."""
         transform_grad, _ = skinning_gradients(self.rest_vertices, self.subset.data["binding"],
                                                self.transforms, vertex_grad)
-        rotation_grad, shift_grad = transform_grad[..., :3, :3], transform_grad[..., :3, 3]
-        rest_rotation, rest_head = self.bone_poses[..., :3, :3], self.bone_poses[..., :3, 3]
-        rotation_grad = rotation_grad - shift_grad[..., :, None] * rest_head[..., None, :]
-        pose_grad = self.pose_grad[:, self.skeleton.inverse]  # bone order
-        pose_grad[..., :3, :3] += rotation_grad @ rest_rotation
-        pose_grad[..., :3, 3] += shift_grad
-        self.pose_grad[:, self.skeleton.inverse] = pose_grad
+        self.pose_grad += self.skeleton.pose_gradient(transform_grad, self.bone_poses)
 
     def priors(self) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
         pose, hands = self.params["body_pose"], self.params["hand_pose"]

@@ -70,3 +70,17 @@ class AnnySkeleton(torch.nn.Module):
         bottom = self.bottom.expand(batch, poses.shape[1], 1, 4)
         transforms = torch.cat([torch.cat([rotation, shift[..., None]], -1), bottom], -2)
         return transforms, poses
+
+    def pose_gradient(self, transform_grad: torch.Tensor, rest_poses: torch.Tensor
+                      ) -> torch.Tensor:
+        """The gradient (B, J, 4, 4, depth order, the bottom rows 0) in the :meth:`pose`
+        poses [R | t] of a loss whose gradient in their :meth:`transforms` (bone order) is
+        ``transform_grad``: T = [R R0^T | t - R R0^T h0], the rest poses [R0 | h0] being
+        ``rest_poses`` (B or 1, J, 4, 4)."""
+        rotation_grad, shift_grad = transform_grad[..., :3, :3], transform_grad[..., :3, 3]
+        rest_rotation, rest_head = rest_poses[..., :3, :3], rest_poses[..., :3, 3]
+        grad = torch.zeros_like(transform_grad)
+        grad[..., :3, :3] = (rotation_grad
+                             - shift_grad[..., :, None] * rest_head[..., None, :]) @ rest_rotation
+        grad[..., :3, 3] = shift_grad
+        return grad[:, self.order]
