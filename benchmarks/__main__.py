@@ -61,6 +61,7 @@ COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f
            ("penetration_mean_depth_m", "pen. depth cm", "cm"),
            ("penetrating_share_as_given", "pen. % as given", "pct"),
            ("contact_recovered", "contact %", "pct"), ("sides_right", "sides %", "pct"),
+           ("depth_off", "depth off %", "pct"), ("depth_bias", "depth bias %", "pct"),
            ("seconds", "s/frame", ".2f")]
 
 
@@ -128,7 +129,10 @@ def markdown(result: dict) -> str:
             "Errors in mm; pen. % = share of vertices more than 1 cm inside the truly "
             "registered scan (as given: inside the misregistered scan the fitter reads); "
             "contact % = ground-truth contact parts recovered; sides % = frames fitted with "
-            "the right left/right labelling.\n\n### All scenes\n\n")
+            "the right left/right labelling; depth off % = how far along the camera's rays the "
+            "fit sits from the truth (vertex centroids' distances from the camera), as a share "
+            "of the truth's, and depth bias % its signed mean (+: too far).\n\n"
+            "### All scenes\n\n")
     text += table(result["overall"])
     for kind, metrics in result["per_kind"].items():
         text += f"\n### {kind}\n\n" + table(metrics)

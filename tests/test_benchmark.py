@@ -278,6 +278,43 @@ def test_targets_are_checked_pooled_and_seed_by_seed(tmp_path):
     assert "Traceback" not in lacking.stderr + twice.stderr
 
 
+def test_depth_ratio_reads_placement_along_the_camera_rays(body):
+    """A fit scaled about the camera's centre (the same pixels, 5 % farther and bigger) has
+    a depth ratio of 1.05, read in the frame of a tilted, rolled, off-centre camera whose
+    axes are not the world's; one moved 10 cm across the view stays within 0.5 % of 1.
+    Frames aggregate to the mean |ratio - 1| and its signed mean; rows written before the
+    ratio was give neither."""
+    from benchmarks.evaluate import aggregate, depth_ratio
+    from prox_engine.synthetic import look_at
+
+    with torch.no_grad():
+        world = body(body.init_params(1)).vertices[0].double().numpy()
+    cam2world = look_at(np.array([1.3, -2.7, 1.6]), np.array([0.3, 0.2, 0.8]))
+    roll = np.radians(25)
+    cam2world[:3, :3] = cam2world[:3, :3] @ np.array(
+        [[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
+    centre = cam2world[:3, 3]
+
+    def in_camera(points: np.ndarray) -> np.ndarray:
+        return (points - centre) @ cam2world[:3, :3]
+
+    farther = centre + 1.05 * (world - centre)
+    assert abs(depth_ratio(in_camera(farther), in_camera(world)) - 1.05) < 1e-9
+    across = world + 0.1 * cam2world[:3, 0]  # along the camera's x axis
+    assert abs(depth_ratio(in_camera(across), in_camera(world)) - 1.0) < 0.005
+    assert abs(depth_ratio(farther, world) - 1.05) > 0.01  # not about the world's origin
+
+    keys = ("pje", "v2v", "p_pje", "p_v2v", "penetrating_share", "penetration_mean_depth_m",
+            "penetrating_share_as_given", "seconds", "gt_contacts", "contacts_recovered",
+            "sides_right")
+    row = dict.fromkeys(keys, 1.0)
+    placed = aggregate([{**row, "depth_ratio": 1.1}, {**row, "depth_ratio": 0.94}])
+    assert placed["depth_off"] == pytest.approx(0.08)
+    assert placed["depth_bias"] == pytest.approx(0.02)
+    older = aggregate([row, {**row, "depth_ratio": 1.1}])
+    assert older["depth_off"] is None and older["depth_bias"] is None
+
+
 def test_frames_are_told_apart_by_what_the_detector_did():
     """The worst thing the detector did names a frame's condition: cut off below the knees
     before blurred, blurred before swapped sides; nothing is clean."""
