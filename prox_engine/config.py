@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -123,6 +124,11 @@ class FitConfig:
     # least motion through its warm-started fit and its fit from scratch (motion_path,
     # pipeline._Paths); 0: the chain's fits alone.
     sequence_path_window: int = 0
+    # ... except a frame whose warm-started fit's posture moved under this much (m, the
+    # root-mean-square motion of its body keypoints about the mid-hip) from the chain's
+    # fit before it, unless its fit from scratch was made anyway (the anchor's window):
+    # a chain that holds still is kept (pipeline._Paths.flush); 0: every frame.
+    sequence_path_settled: float = 0.0
     # ... and, where set, its anchor is the frame of the first window whose fit from
     # scratch moves least to the others' (summed; of the frames seen at least anchor_seen
     # times as well as the best of them), not the first well-seen frame labelled as
@@ -396,8 +402,50 @@ def load_config(name_or_path: str | Path, model: str = "anny") -> FitConfig:
     unknown = set(raw) - known
     if unknown:
         raise InputError(path, f"unknown settings {sorted(unknown)}")
+    raw = _typed(path, raw)
     parts = set(raw.get("swap_check_parts", [])) - set(SIDE_PAIRS)
     if parts:
         raise InputError(path, f"swap_check_parts: unknown parts {sorted(parts)} "
                                f"(known: {', '.join(SIDE_PAIRS)})")
     return FitConfig(name=path.stem, stages=stages, **raw)
+
+
+def _typed(path: Path, raw: dict) -> dict:
+    """The settings ``raw`` as FitConfig types them, or an InputError naming ``path`` and
+    the setting: a worker given a weight of ``"high"`` failed deep inside a fit. A number
+    YAML 1.1 reads as text (``1e-6``, written without a point) is read as the number."""
+    hints = get_type_hints(FitConfig)
+    typed = {}
+    for name, value in raw.items():
+        try:
+            typed[name] = _as(hints[name], value)
+        except (TypeError, ValueError):
+            raise InputError(path, f"{name}: expected {_words(hints[name])}, got {value!r}"
+                             ) from None
+    return typed
+
+
+def _as(kind, value):
+    """``value`` as the type ``kind`` (bool, int, float, str, an optional or a list of
+    them); TypeError or ValueError where it is not one."""
+    if get_origin(kind) is list:
+        if not isinstance(value, list):
+            raise TypeError(value)
+        return [_as(get_args(kind)[0], item) for item in value]
+    if type(None) in get_args(kind):
+        return None if value is None else _as(get_args(kind)[0], value)
+    if kind is float and not isinstance(value, bool) and isinstance(value, (int, float, str)):
+        return float(value)
+    if isinstance(value, kind) and not (kind is int and isinstance(value, bool)):
+        return value
+    raise TypeError(value)
+
+
+def _words(kind) -> str:
+    """How an error names the type ``kind``."""
+    if get_origin(kind) is list:
+        return "a list of " + {int: "whole numbers", str: "texts"}[get_args(kind)[0]]
+    if type(None) in get_args(kind):
+        return f"{_words(get_args(kind)[0])} or nothing"
+    return {bool: "true or false", int: "a whole number", float: "a number",
+            str: "a text"}[kind]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -136,6 +137,23 @@ def test_configs(tmp_path):
     typo = _write(tmp_path / "typo.yaml", "base: prox\nswap_check_parts: [legs, arm]\n")
     with pytest.raises(InputError, match=r"swap_check_parts: unknown parts \['arm'\]"):
         load_config(typo)
+
+
+@pytest.mark.parametrize("setting, problem", [
+    ("scale_size_weight: high", "scale_size_weight: expected a number, got 'high'"),
+    ("floating_restart: 1", "floating_restart: expected true or false, got 1"),
+    ("batch_size: 2.5", "batch_size: expected a whole number, got 2.5"),
+    ("swap_check_parts: legs", "swap_check_parts: expected a list of texts, got 'legs'"),
+    ("model_path: 3", "model_path: expected a text or nothing, got 3"),
+])
+def test_a_setting_of_the_wrong_type_is_an_error_naming_the_file(tmp_path, setting, problem):
+    """Each setting is read as FitConfig types it: one of the wrong kind failed deep in a
+    worker's fit. YAML 1.1 reads 1e-2 (no point) as text; it is the number."""
+    bad = _write(tmp_path / "typed.yaml", f"base: prox\n{setting}\n")
+    with pytest.raises(InputError, match=re.escape(f"typed.yaml: {problem}")):
+        load_config(bad)
+    exponent = _write(tmp_path / "exponent.yaml", "base: prox\nscale_size_weight: 1e-2\n")
+    assert load_config(exponent).scale_size_weight == 0.01
 
 
 def test_config_inherits_from_its_base(tmp_path):
