@@ -124,11 +124,11 @@ class FitConfig:
     # least motion through its warm-started fit and its fit from scratch (motion_path,
     # pipeline._Paths); 0: the chain's fits alone.
     sequence_path_window: int = 0
-    # ... except a frame whose warm-started fit's posture moved under this much (m, the
-    # root-mean-square motion of its body keypoints about the mid-hip) from the chain's
-    # fit before it, unless its fit from scratch was made anyway (the anchor's window):
-    # a chain that holds still is kept (pipeline._Paths.flush); 0: every frame.
-    sequence_path_settled: float = 0.0
+    # ... and, where set, after each window the chain goes on from the fit the path kept
+    # for the window's last frame, not from its own: a chain that went wrong otherwise
+    # stayed wrong to the recording's end, its frames rescued one by one by their fits
+    # from scratch (pipeline.fit_recording). Recordings of up to a window fit as without.
+    sequence_chain_from_path: bool = False
     # ... and, where set, its anchor is the frame of the first window whose fit from
     # scratch moves least to the others' (summed; of the frames seen at least anchor_seen
     # times as well as the best of them), not the first well-seen frame labelled as

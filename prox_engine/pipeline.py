@@ -136,6 +136,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                          as_detected if config.anchor_as_detected else None)
     for chain in chains:
         previous = anchor  # a backward chain starts from the anchor frame's fit
+        went_on = ""  # an event for the chain's next fit, where it went on from the path's
         if paths:
             paths.before = anchor
         for start in range(0, len(chain), batch):
@@ -159,12 +160,21 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                 if anchor is None and start == 0 and results and search["evaluations"]:
                     _charge(results[0], "anchor_search", search["seconds"],
                             search["evaluations"])
+                if went_on and results and not fresh:
+                    results[0].events.append(went_on)
+                went_on = ""
                 previous = results[-1] if results else None
                 if anchor is None and start == 0 and previous is not None:
                     anchor, anchor_px = previous, _error_px(fitter, previous, frames[-1])
             pairs = list(zip(frames, results))
             failed = len(chain[start:start + batch]) - len(pairs)
-            written(paths.add(pairs, fresh) if paths else pairs, failed)
+            kept = paths.add(pairs, fresh) if paths else pairs
+            if paths and kept and previous is not None and config.sequence_chain_from_path:
+                if paths.before is not previous:
+                    went_on = (f"sequence: warm-started from {paths.before.name}'s fit from "
+                               "scratch, which the path of least motion kept, not the chain's")
+                previous = paths.before
+            written(kept, failed)
         if paths:
             written(paths.flush(), 0)
 

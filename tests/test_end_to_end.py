@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
 from prox_engine.keypoints import side_swap
@@ -158,6 +159,38 @@ def test_sequence_mode_keeps_the_fits_on_the_path_of_least_motion(sitting_data, 
     assert moved < warm, kept[0]
     assert first["profile"]["warm_fit"]["body_evaluations"] > 0
     assert first["seconds"] >= sum(s["seconds"] for s in first["profile"].values()) - 1e-3
+
+
+@pytest.fixture(scope="module")
+def three_frames(tmp_path_factory, body) -> Path:
+    """The synthetic sitting scene with three frames."""
+    from prox_engine.synthetic import make_sitting_dataset
+
+    return make_sitting_dataset(tmp_path_factory.mktemp("three"), frames=3, body=body,
+                                face_size=0.12)
+
+
+def test_sequence_mode_goes_on_from_the_fit_the_path_kept(three_frames, tmp_path):
+    """With a window of one frame, the chain's second frame, whose keypoints are the
+    first's, keeps its fit from scratch (the first frame's fit to the bit: no motion) on
+    the path of least motion, and the third frame is warm-started from that fit
+    (``sequence_chain_from_path``), not from the chain's own."""
+    base = tmp_path / "data"
+    shutil.copytree(three_frames, base, ignore=shutil.ignore_patterns("ground_truth"))
+    first_file, second_file, _ = sorted((base / "keypoints" / REC).iterdir())
+    second_file.write_bytes(first_file.read_bytes())
+    config = tmp_path / "windowed.yaml"
+    config.write_text("base: prox\nsdf_dim: 128\nsequence_path_window: 1\n")
+    run = cli_fit(base, tmp_path / "seq", config, "--sequence", "--frames", "3", "--no-report")
+    assert run.returncode == 0, run.stderr
+    first, second, third = json.loads((tmp_path / "seq" / REC / "summary.json").read_text()
+                                      )["frames"]
+    assert "initialise" in first["profile"]  # the anchor, the only frame of its window
+    assert any("kept its fit from scratch" in e for e in second["events"]), second["events"]
+    went_on = [e for e in third["events"] if "warm-started from" in e]
+    assert len(went_on) == 1 and second["frame"] in went_on[0], third["events"]
+    assert "temporal" in json.loads((tmp_path / "seq" / REC / "results" / third["frame"]
+                                     / "000.json").read_text())["losses"]
 
 
 def test_sequence_mode_anchors_on_a_frame_labelled_as_detected(sitting_data, tmp_path):
