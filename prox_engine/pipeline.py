@@ -154,7 +154,7 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
                     results = (paths.fresh_fits(frames) if paths and fresh else
                                _fit_fresh(fitter, frames) if fresh else
                                _fit_from(fitter, frames[0], previous, anchor or previous,
-                                         anchor_px))
+                                         anchor_px, paths.lend if paths else None))
                 except (RuntimeError, ValueError) as exc:  # numerical failure: skip, go on
                     failures += [(f.name, f"optimisation failed ({exc})") for f in frames]
                 if anchor is None and start == 0 and results and search["evaluations"]:
@@ -251,13 +251,15 @@ class _Paths:
     for the frame before them (``before``: a chain's first frame has none, a backward
     chain's the anchor's). With FitConfig.anchor_by_motion the first window's frames are
     fitted from scratch before the chain, to choose its anchor by, and those fits serve
-    the chain and the path."""
+    the chain and the path. Where the chain falls back on a fit from scratch (a refit, a
+    label or floating check: :func:`_fit_from`), it takes the path's (:meth:`lend`)."""
 
     def __init__(self, fitter: Fitter, window: int) -> None:
         self.fitter, self.window = fitter, window
         self.before: FitResult | None = None
         self.pending: list[tuple[Frame, FitResult, bool]] = []
         self.ahead: dict[str, FitResult] = {}  # fits from scratch made before the chain
+        self.lent: dict[str, FitResult] = {}  # those the chain fell back on (lend)
 
     def chains_from_medoid(self, rec: Recording, names: list[str],
                            load: Callable[[str], Frame], anchor_seen: float
@@ -293,6 +295,15 @@ class _Paths:
         return [self.ahead.pop(frame.name) if frame.name in self.ahead else made[frame.name]
                 for frame in frames]
 
+    def lend(self, frame: Frame) -> FitResult:
+        """The frame's fit from scratch, for the chain to fall back on (:func:`_fit_from`):
+        the one made ahead, else one made now (:func:`_fit_fresh`) and held as the path's,
+        so that no frame is fitted from scratch twice. Where the chain keeps its warm fit
+        over it, the warm fit carries its cost, and the flush does not charge it again."""
+        fit = self.ahead.get(frame.name) or _fit_fresh(self.fitter, [frame])[0]
+        self.ahead[frame.name] = self.lent[frame.name] = fit
+        return fit
+
     def add(self, pairs: list[tuple[Frame, FitResult]], fresh: bool
             ) -> list[tuple[Frame, FitResult]]:
         """Hold the chain's fits ``pairs`` (``fresh``: fitted from scratch, as a single
@@ -308,19 +319,26 @@ class _Paths:
         if again:
             try:
                 for i, fit in zip(again, self.fresh_fits([pending[i][0] for i in again])):
-                    candidates[i].append(fit)
+                    if fit is not candidates[i][0]:  # the chain went on from it
+                        candidates[i].append(fit)
             except (RuntimeError, ValueError) as exc:  # the chain's fits stand
                 for i in again:
                     pending[i][1].events.append(f"sequence: no fit from scratch ({exc})")
         before = None if self.before is None else self.before.vertices
         path = least_motion_path([[c.vertices for c in cs] for cs in candidates], before)
         kept = [cs[pick] for cs, pick in zip(candidates, path)]
+        lent = [self.lent.pop(frame.name, None) for frame, _, _ in pending]
         for i, (cs, pick) in enumerate(zip(candidates, path)):
             if len(cs) == 1:
                 continue
             dropped = cs[1 - pick]
-            _charge(kept[i], "fresh_fit" if pick == 0 else "warm_fit", dropped.seconds,
-                    sum(dropped.stage_evaluations.values()))
+            if cs[1] is not lent[i]:
+                _charge(kept[i], "fresh_fit" if pick == 0 else "warm_fit", dropped.seconds,
+                        sum(dropped.stage_evaluations.values()))
+            elif pick:  # the warm fit already carries the cost of the fit from scratch
+                _charge(kept[i], "warm_fit", dropped.seconds - kept[i].seconds,
+                        sum(dropped.stage_evaluations.values())
+                        - sum(kept[i].stage_evaluations.values()))
             if pick:  # a path that leaves the chain has a neighbour to leave it for
                 around = [f.vertices for f in [kept[i - 1] if i else self.before,
                                                *kept[i + 1:i + 2]] if f is not None]
@@ -370,7 +388,8 @@ def _kept_nearer(fitter: Fitter, frame: Frame, result: FitResult, error: float,
 
 
 def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor: FitResult,
-              anchor_px: float) -> list[FitResult]:
+              anchor_px: float, from_scratch: Callable[[Frame], FitResult] | None = None
+              ) -> list[FitResult]:
     """Sequence mode: ``frame`` fitted from its neighbour's fit (``previous``), with
     ``config.sequence_anchor_size`` the scale search's size prior centred on the size of
     the ``anchor`` frame's fit (``anchor_px`` from its keypoints). Where that
@@ -380,7 +399,9 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor: FitResu
     end near them at a wrong depth (a lying body 30 cm near, 13.0 px off against the
     fresh fit's 13.4), which the fresh fit's scale search does not inherit. Where its
     labelling overrides the detector against the frame's own start search, the fit
-    nearer the keypoints of it and a fit from scratch goes on (:func:`_checked_labels`)."""
+    nearer the keypoints of it and a fit from scratch goes on (:func:`_checked_labels`).
+    Each fit from scratch is ``from_scratch(frame)`` (default: a plain fit of the frame)."""
+    from_scratch = from_scratch or (lambda f: fitter.fit([f])[0])
     sized_as = anchor if fitter.config.sequence_anchor_size else previous
     results = fitter.fit([frame], warm_start=previous.params,
                          previous_keypoints=previous.keypoints[None], sized_as=sized_as.params)
@@ -389,21 +410,21 @@ def _fit_from(fitter: Fitter, frame: Frame, previous: FitResult, anchor: FitResu
     why = refit_reason(fitter.config, error_px, anchor_px,
                        previous.swapped, results[0].swapped, metrics.limb_errors(errors))
     if why:
-        fresh = fitter.fit([frame])
-        fresh[0].events.append(f"sequence: refitted from scratch, {why}")
-        _discard(fresh[0], results[0])
-        return fresh
+        fresh = from_scratch(frame)
+        fresh.events.append(f"sequence: refitted from scratch, {why}")
+        _discard(fresh, results[0])
+        return [fresh]
     if fitter.config.sequence_refit and fitter.config.sequence_label_check:
-        checked = _checked_labels(fitter, frame, results[0], error_px)
+        checked = _checked_labels(fitter, frame, results[0], error_px, from_scratch)
         if checked is not results[0]:
             return [checked]
     if fitter.config.sequence_refit and fitter.config.sequence_floating_refit:
-        return _unless_floating(fitter, frame, results)
+        return _unless_floating(fitter, frame, results, from_scratch)
     return results
 
 
-def _checked_labels(fitter: Fitter, frame: Frame, warm: FitResult, warm_px: float
-                    ) -> FitResult:
+def _checked_labels(fitter: Fitter, frame: Frame, warm: FitResult, warm_px: float,
+                    from_scratch: Callable[[Frame], FitResult]) -> FitResult:
     """The warm fit (``warm_px`` from its keypoints), unless its labelling, taken from its
     neighbour's fit, overrides the detector's left and right of a part that the frame's own
     start search (``Fitter.start_labelling``, charged to ``warm``; a fit from scratch reuses
@@ -422,7 +443,7 @@ def _checked_labels(fitter: Fitter, frame: Frame, warm: FitResult, warm_px: floa
     disputed = sorted(set(warm.swapped) - set(own))
     if not disputed:
         return warm
-    fresh = fitter.fit([frame])[0]
+    fresh = from_scratch(frame)
     fresh_px = _error_px(fitter, fresh, frame)
     kept, dropped = (fresh, warm) if fresh_px < warm_px else (warm, fresh)
     kept.events.append(
@@ -434,13 +455,13 @@ def _checked_labels(fitter: Fitter, frame: Frame, warm: FitResult, warm_px: floa
     return kept
 
 
-def _unless_floating(fitter: Fitter, frame: Frame, results: list[FitResult]
-                     ) -> list[FitResult]:
+def _unless_floating(fitter: Fitter, frame: Frame, results: list[FitResult],
+                     from_scratch: Callable[[Frame], FitResult]) -> list[FitResult]:
     """A warm-started fit whose underside floats over every surface is fitted again from
     scratch, and the fit that floats less is kept (:func:`_less_floating`): the keypoint
     stage lets a frame drift along the camera rays from its neighbour's depth, and the
     contact stage alone cannot pull it back (seed 35's bed, 22 cm up, 576 mm off)."""
-    return [_less_floating(fitter, results[0], lambda: fitter.fit([frame])[0], None,
+    return [_less_floating(fitter, results[0], lambda: from_scratch(frame), None,
                            ("sequence: its neighbour's fit ", "neighbour's",
                             "a fit from scratch", "fit from scratch"))]
 

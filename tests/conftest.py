@@ -33,12 +33,13 @@ def sitting_data(tmp_path_factory, body) -> Path:
 REC = "Synthetic_00000_01"
 
 
-def coarse_config(tmp_path: Path, name: str) -> Path:
-    """The named configuration on a coarser SDF grid, to keep the tests quick."""
+def coarse_config(tmp_path: Path, name: str, settings: str = "") -> Path:
+    """The named configuration on a coarser SDF grid, to keep the tests quick, with
+    ``settings`` (YAML lines) added."""
     from prox_engine.config import CONFIG_DIR
 
     path = tmp_path / f"{name}.yaml"
-    path.write_text((CONFIG_DIR / f"{name}.yaml").read_text() + "sdf_dim: 128\n")
+    path.write_text((CONFIG_DIR / f"{name}.yaml").read_text() + "sdf_dim: 128\n" + settings)
     return path
 
 

@@ -100,17 +100,19 @@ def test_every_frame_failing_is_a_failed_run(sitting_data, tmp_path):
 
 
 def _sequence_fit_with(sitting_data, tmp_path, index: int, edit, *extra: str,
-                       config: str = "prox-chain-only") -> tuple[dict, Path]:
+                       config: str = "prox-chain-only", settings: str = ""
+                       ) -> tuple[dict, Path]:
     """``prox fit --sequence`` (by default the chain's fits alone: no path of least motion
-    through fits from scratch) of the first two sitting frames after ``edit`` changed the
-    flat ``pose_keypoints_2d`` list of frame ``index``; the summary and that frame's file."""
+    through fits from scratch; ``settings`` added to the configuration) of the first two
+    sitting frames after ``edit`` changed the flat ``pose_keypoints_2d`` list of frame
+    ``index``; the summary and that frame's file."""
     base = tmp_path / "data"
     shutil.copytree(sitting_data, base, ignore=shutil.ignore_patterns("ground_truth"))
     path = sorted((base / "keypoints" / REC).iterdir())[index]
     content = json.loads(path.read_text())
     edit(content["people"][0]["pose_keypoints_2d"])
     path.write_text(json.dumps(content))
-    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, config), "--sequence",
+    run = cli_fit(base, tmp_path / "seq", coarse_config(tmp_path, config, settings), "--sequence",
                   "--frames", "2", *extra)
     assert run.returncode == 0, run.stderr
     return json.loads((tmp_path / "seq" / REC / "summary.json").read_text()), path
@@ -227,6 +229,30 @@ def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_
     profile = second["profile"]
     assert profile["discarded_fit"]["body_evaluations"] > 0
     assert second["seconds"] >= sum(stage["seconds"] for stage in profile.values()) - 1e-3
+
+
+@pytest.mark.parametrize("window", [8, 1])
+def test_sequence_mode_fits_no_frame_from_scratch_twice(sitting_data, tmp_path, window):
+    """A frame whose warm fit lost the keypoints (a 400 px cut) falls back on the fit from
+    scratch that the path of least motion has of it (made ahead for the anchor's choice
+    with a window of 8, made then and held for the path with a window of 1): the path has
+    no second fit from scratch to weigh against it, and the frame's time counts its two
+    fits, the warm one discarded."""
+    def jump(points: list[float]) -> None:
+        for k in range(0, len(points), 3):
+            if points[k + 2] > 0:
+                points[k] -= 400.0
+
+    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 1, jump, "--no-report",
+                                    config="prox", settings=f"sequence_path_window: {window}\n")
+    refitted = [f for f in summary["frames"]
+                if any("refitted from scratch" in e for e in f["events"])]
+    assert len(refitted) == 1, [f["events"] for f in summary["frames"]]
+    profile = refitted[0]["profile"]
+    assert profile["discarded_fit"]["body_evaluations"] > 0
+    assert not {"fresh_fit", "warm_fit"} & set(profile), profile
+    assert not any("path of least motion" in e for e in refitted[0]["events"])
+    assert refitted[0]["seconds"] >= sum(s["seconds"] for s in profile.values()) - 1e-3
 
 
 def test_sequence_mode_refits_a_lost_fit_and_optionally_a_chain_overriding_the_detector():

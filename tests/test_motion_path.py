@@ -46,3 +46,31 @@ def test_the_medoid_is_the_body_that_moves_least_to_the_others_among_those_allow
     assert medoid(bodies, list(range(5))) == 2
     assert medoid(bodies, [0, 3, 4]) == 0  # the frames seen well enough
     assert medoid(bodies, [4]) == 4
+
+
+@pytest.mark.parametrize("warm_at, fresh_at, kept", [(0.4, 0.0, "fresh"), (0.0, 0.4, "warm")])
+def test_a_fit_from_scratch_lent_to_the_chain_is_weighed_by_the_path_and_counted_once(
+        warm_at, fresh_at, kept):
+    """The chain fell back on the path's fit from scratch of a frame (a label or floating
+    check) and kept its warm fit, which carries the fit from scratch's cost: the path weighs
+    the two without fitting the frame from scratch again, and whichever it keeps counts
+    both fits once."""
+    from prox_engine.fitting import FitResult, Frame
+    from prox_engine.pipeline import _discard, _Paths
+
+    def fit(name: str, x: float, seconds: float) -> FitResult:
+        return FitResult(name, {}, at(x)[0], torch.zeros(118, 3), {}, seconds,
+                         {"final": seconds}, {"final": 10.0})
+
+    paths = _Paths(None, window=2)  # no fitter: nothing may be fitted here
+    anchor, fresh = fit("a", 0.0, 1.0), fit("b", fresh_at, 1.0)
+    paths.ahead["b"] = fresh
+    assert paths.lend(Frame("b", None)) is fresh
+    warm = fit("b", warm_at, 0.25)
+    _discard(warm, fresh)  # as the chain's checks do when they keep the warm fit
+    assert paths.add([(Frame("a", None), anchor)], True) == []
+    (_, first), (_, second) = paths.add([(Frame("b", None), warm)], False)
+    assert first is anchor and second is (fresh if kept == "fresh" else warm)
+    assert second.seconds == pytest.approx(1.25)
+    assert sum(second.stage_evaluations.values()) == pytest.approx(20.0)
+    assert not paths.ahead and not paths.lent
