@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -197,7 +197,8 @@ def fit_recording(base: Path, recording: str, out: Path, config: FitConfig, body
 RESTART_DATA = 0.9
 
 
-def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
+def _fit_fresh(fitter: Fitter, frames: list[Frame],
+               replaced: dict[str, FitResult] | None = None) -> list[FitResult]:
     """``frames`` fitted from scratch; with ``config.floating_restart``, each whose fit
     floats over every surface is fitted again from the start its fit did not go on from
     (see :func:`_kept_less_floating`, with RESTART_DATA): the start choice judges how each
@@ -212,8 +213,10 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
     ends far from its keypoints is fitted again as detected (:func:`_swapped_far`); so is
     a floating frame's fit kept after its refit. A batch's frames fitted again are fitted
     together, whatever they are fitted again for: one fit, and one more for the kept
-    refits that need checking."""
+    refits that need checking. With ``replaced``, each frame's first fit that one fitted
+    again replaced goes there by the frame's name (its cost counted in the fit kept)."""
     results = list(fitter.fit(frames))
+    first = list(results)
     floating: dict[int, float] = {}  # frame -> seconds its floating check took
     if fitter.config.floating_restart and fitter.scene is not None:
         for b, (frame, result) in enumerate(zip(frames, results)):
@@ -240,6 +243,9 @@ def _fit_fresh(fitter: Fitter, frames: list[Frame]) -> list[FitResult]:
         as_detected = fitter.fit([frames[b] for b in far], as_detected=[True] * len(far))
         for b, other in zip(far, as_detected):
             results[b] = _kept_nearer(fitter, frames[b], results[b], far[b], other)
+    if replaced is not None:
+        replaced.update((frame.name, fit) for frame, fit, kept in zip(frames, first, results)
+                        if fit is not kept)
     return results
 
 
@@ -259,7 +265,8 @@ class _Paths:
         self.before: FitResult | None = None
         self.pending: list[tuple[Frame, FitResult, bool]] = []
         self.ahead: dict[str, FitResult] = {}  # fits from scratch made before the chain
-        self.lent: dict[str, FitResult] = {}  # those the chain fell back on (lend)
+        self.first: dict[str, FitResult] = {}  # their first fits, where refits replaced them
+        self.lent: dict[str, tuple[FitResult, FitResult]] = {}  # copy lent, its original
 
     def chains_from_medoid(self, rec: Recording, names: list[str],
                            load: Callable[[str], Frame], anchor_seen: float
@@ -275,7 +282,7 @@ class _Paths:
             except InputError:
                 continue  # reported when the chain comes to it
         try:
-            fits = _fit_fresh(self.fitter, frames) if frames else []
+            fits = _fit_fresh(self.fitter, frames, self.first) if frames else []
         except (RuntimeError, ValueError):
             fits = []
         if not fits:
@@ -291,18 +298,25 @@ class _Paths:
         together (:func:`_fit_fresh`)."""
         missing = [frame for frame in frames if frame.name not in self.ahead]
         made = dict(zip([frame.name for frame in missing],
-                        _fit_fresh(self.fitter, missing) if missing else []))
+                        _fit_fresh(self.fitter, missing, self.first) if missing else []))
         return [self.ahead.pop(frame.name) if frame.name in self.ahead else made[frame.name]
                 for frame in frames]
 
     def lend(self, frame: Frame) -> FitResult:
-        """The frame's fit from scratch, for the chain to fall back on (:func:`_fit_from`):
-        the one made ahead, else one made now (:func:`_fit_fresh`) and held as the path's,
-        so that no frame is fitted from scratch twice. Where the chain keeps its warm fit
-        over it, the warm fit carries its cost, and the flush does not charge it again."""
-        fit = self.ahead.get(frame.name) or _fit_fresh(self.fitter, [frame])[0]
-        self.ahead[frame.name] = self.lent[frame.name] = fit
-        return fit
+        """The frame's fit from scratch as the chain makes it alone, for the chain to fall
+        back on (:func:`_fit_from`), made once for the chain and the path: the path's fit
+        (made ahead, else made now and held for the path), or that fit's first fit where a
+        refit replaced it (:func:`_fit_fresh`). Lent as a copy that costs nothing (the
+        path's fit counts the cost), the same copy each time; where the chain keeps a copy
+        of the path's own fit, the flush weighs them as one."""
+        if frame.name not in self.lent:
+            if frame.name not in self.ahead:
+                self.ahead[frame.name] = _fit_fresh(self.fitter, [frame], self.first)[0]
+            original = self.first.pop(frame.name, None) or self.ahead[frame.name]
+            self.lent[frame.name] = (replace(original, seconds=0.0, stage_seconds={},
+                                             stage_evaluations={}, events=list(original.events)),
+                                     original)
+        return self.lent[frame.name][0]
 
     def add(self, pairs: list[tuple[Frame, FitResult]], fresh: bool
             ) -> list[tuple[Frame, FitResult]]:
@@ -319,26 +333,25 @@ class _Paths:
         if again:
             try:
                 for i, fit in zip(again, self.fresh_fits([pending[i][0] for i in again])):
-                    if fit is not candidates[i][0]:  # the chain went on from it
-                        candidates[i].append(fit)
+                    candidates[i].append(fit)
             except (RuntimeError, ValueError) as exc:  # the chain's fits stand
                 for i in again:
                     pending[i][1].events.append(f"sequence: no fit from scratch ({exc})")
+        for i, (frame, result, _) in enumerate(pending):
+            self.first.pop(frame.name, None)
+            copy, original = self.lent.pop(frame.name, (None, None))
+            if result is copy and len(candidates[i]) == 2 and candidates[i][1] is original:
+                _charge_all(copy, original)
+                candidates[i] = [copy]
         before = None if self.before is None else self.before.vertices
         path = least_motion_path([[c.vertices for c in cs] for cs in candidates], before)
         kept = [cs[pick] for cs, pick in zip(candidates, path)]
-        lent = [self.lent.pop(frame.name, None) for frame, _, _ in pending]
         for i, (cs, pick) in enumerate(zip(candidates, path)):
             if len(cs) == 1:
                 continue
             dropped = cs[1 - pick]
-            if cs[1] is not lent[i]:
-                _charge(kept[i], "fresh_fit" if pick == 0 else "warm_fit", dropped.seconds,
-                        sum(dropped.stage_evaluations.values()))
-            elif pick:  # the warm fit already carries the cost of the fit from scratch
-                _charge(kept[i], "warm_fit", dropped.seconds - kept[i].seconds,
-                        sum(dropped.stage_evaluations.values())
-                        - sum(kept[i].stage_evaluations.values()))
+            _charge(kept[i], "fresh_fit" if pick == 0 else "warm_fit", dropped.seconds,
+                    sum(dropped.stage_evaluations.values()))
             if pick:  # a path that leaves the chain has a neighbour to leave it for
                 around = [f.vertices for f in [kept[i - 1] if i else self.before,
                                                *kept[i + 1:i + 2]] if f is not None]
@@ -509,6 +522,17 @@ def _kept_less_floating(fitter: Fitter, result: FitResult, other: FitResult, che
     _discard(kept, dropped)
     _charge(kept, "floating_check", check, 0)
     return kept
+
+
+def _charge_all(result: FitResult, original: FitResult) -> None:
+    """Count in ``result``, a copy of ``original`` made at no cost (:meth:`_Paths.lend`),
+    the original's cost, stage by stage: the chain kept the copy and the path's fit is the
+    original, one fit from scratch."""
+    result.seconds += original.seconds
+    for step, seconds in original.stage_seconds.items():
+        result.stage_seconds[step] = result.stage_seconds.get(step, 0.0) + seconds
+    for step, count in original.stage_evaluations.items():
+        result.stage_evaluations[step] = result.stage_evaluations.get(step, 0.0) + count
 
 
 def _discard(kept: FitResult, dropped: FitResult) -> None:

@@ -48,29 +48,58 @@ def test_the_medoid_is_the_body_that_moves_least_to_the_others_among_those_allow
     assert medoid(bodies, [4]) == 4
 
 
-@pytest.mark.parametrize("warm_at, fresh_at, kept", [(0.4, 0.0, "fresh"), (0.0, 0.4, "warm")])
-def test_a_fit_from_scratch_lent_to_the_chain_is_weighed_by_the_path_and_counted_once(
-        warm_at, fresh_at, kept):
-    """The chain fell back on the path's fit from scratch of a frame (a label or floating
-    check) and kept its warm fit, which carries the fit from scratch's cost: the path weighs
-    the two without fitting the frame from scratch again, and whichever it keeps counts
-    both fits once."""
-    from prox_engine.fitting import FitResult, Frame
+def _fit(name: str, x: float, seconds: float):
+    """A fit of frame ``name``, the body at ``x`` (m), that took ``seconds`` in its final
+    stage over 10 body evaluations."""
+    from prox_engine.fitting import FitResult
+
+    return FitResult(name, {}, at(x)[0], torch.zeros(118, 3), {}, seconds, {"final": seconds},
+                     {"final": 10.0})
+
+
+@pytest.mark.parametrize("chain_keeps, warm_at, kept", [
+    ("fresh", 0.4, "fresh"), ("warm", 0.4, "fresh"), ("warm", 0.0, "warm")])
+def test_a_fit_from_scratch_lent_to_the_chain_is_made_once_and_counted_once(
+        chain_keeps, warm_at, kept):
+    """The chain falls back on the path's fit from scratch of frame b (made ahead): it is
+    lent a copy that costs nothing and keeps it or its warm fit (which, as the chain's
+    checks do, counts the other's cost); the path then weighs the chain's fit against its
+    own fit from scratch (one fit, where the chain kept the copy of it), nothing is fitted
+    again, and whichever fit is kept counts the warm fit and the fit from scratch once."""
+    from prox_engine.fitting import Frame
     from prox_engine.pipeline import _discard, _Paths
 
-    def fit(name: str, x: float, seconds: float) -> FitResult:
-        return FitResult(name, {}, at(x)[0], torch.zeros(118, 3), {}, seconds,
-                         {"final": seconds}, {"final": 10.0})
-
     paths = _Paths(None, window=2)  # no fitter: nothing may be fitted here
-    anchor, fresh = fit("a", 0.0, 1.0), fit("b", fresh_at, 1.0)
+    anchor, fresh, warm = _fit("a", 0.0, 1.0), _fit("b", 0.0, 1.0), _fit("b", warm_at, 0.25)
     paths.ahead["b"] = fresh
-    assert paths.lend(Frame("b", None)) is fresh
-    warm = fit("b", warm_at, 0.25)
-    _discard(warm, fresh)  # as the chain's checks do when they keep the warm fit
+    lent = paths.lend(Frame("b", None))
+    assert lent is not fresh and lent.seconds == 0 and paths.lend(Frame("b", None)) is lent
+    assert torch.equal(lent.vertices, fresh.vertices)
+    chain = lent if chain_keeps == "fresh" else warm
+    _discard(chain, warm if chain is lent else lent)
     assert paths.add([(Frame("a", None), anchor)], True) == []
-    (_, first), (_, second) = paths.add([(Frame("b", None), warm)], False)
-    assert first is anchor and second is (fresh if kept == "fresh" else warm)
+    (_, first), (_, second) = paths.add([(Frame("b", None), chain)], False)
+    assert first is anchor
+    assert second is {"fresh": lent if chain is lent else fresh, "warm": warm}[kept]
     assert second.seconds == pytest.approx(1.25)
     assert sum(second.stage_evaluations.values()) == pytest.approx(20.0)
     assert not paths.ahead and not paths.lent
+
+
+def test_the_chain_is_lent_the_first_fit_from_scratch_where_a_refit_replaced_it():
+    """Where a refit (a floating restart, a swap check) replaced a frame's first fit from
+    scratch, the chain falls back on the first fit, as it would make it alone, while the
+    path weighs the refit, which counts both fits' cost."""
+    from prox_engine.fitting import Frame
+    from prox_engine.pipeline import _discard, _Paths
+
+    paths = _Paths(None, window=1)
+    first, refit = _fit("b", 0.3, 1.0), _fit("b", 0.0, 1.0)
+    _discard(refit, first)
+    paths.ahead["b"], paths.first["b"] = refit, first
+    lent = paths.lend(Frame("b", None))
+    assert torch.equal(lent.vertices, first.vertices) and lent.seconds == 0
+    paths.before = _fit("a", 0.3, 1.0)
+    ((_, kept),) = paths.add([(Frame("b", None), lent)], False)
+    assert kept is lent and kept.seconds == pytest.approx(2.0)
+    assert not paths.first and not paths.lent
