@@ -282,7 +282,7 @@ class _Paths:
             except InputError:
                 continue  # reported when the chain comes to it
         try:
-            fits = _fit_fresh(self.fitter, frames, self.first) if frames else []
+            fits = self._fresh(frames) if frames else []
         except (RuntimeError, ValueError):
             fits = []
         if not fits:
@@ -298,9 +298,14 @@ class _Paths:
         together (:func:`_fit_fresh`)."""
         missing = [frame for frame in frames if frame.name not in self.ahead]
         made = dict(zip([frame.name for frame in missing],
-                        _fit_fresh(self.fitter, missing, self.first) if missing else []))
+                        self._fresh(missing) if missing else []))
         return [self.ahead.pop(frame.name) if frame.name in self.ahead else made[frame.name]
                 for frame in frames]
+
+    def _fresh(self, frames: list[Frame]) -> list[FitResult]:
+        """``frames`` fitted from scratch (:func:`_fit_fresh`), the first fits that refits
+        replaced kept for :meth:`lend`."""
+        return _fit_fresh(self.fitter, frames, self.first)
 
     def lend(self, frame: Frame) -> FitResult:
         """The frame's fit from scratch as the chain makes it alone, for the chain to fall
@@ -311,7 +316,7 @@ class _Paths:
         of the path's own fit, the flush weighs them as one."""
         if frame.name not in self.lent:
             if frame.name not in self.ahead:
-                self.ahead[frame.name] = _fit_fresh(self.fitter, [frame], self.first)[0]
+                self.ahead[frame.name] = self._fresh([frame])[0]
             original = self.first.pop(frame.name, None) or self.ahead[frame.name]
             self.lent[frame.name] = (replace(original, seconds=0.0, stage_seconds={},
                                              stage_evaluations={}, events=list(original.events)),

@@ -212,16 +212,18 @@ def test_sequence_mode_anchors_on_a_frame_labelled_as_detected(sitting_data, tmp
     assert second["seconds"] >= sum(s["seconds"] for s in second["profile"].values()) - 1e-3
 
 
+def _jump(points: list[float]) -> None:
+    """Every keypoint seen moved 400 px to the left (a cut in the video)."""
+    for k in range(0, len(points), 3):
+        if points[k + 2] > 0:
+            points[k] -= 400.0
+
+
 def test_sequence_mode_refits_a_frame_whose_neighbour_lost_it(sitting_data, tmp_path):
     """The second frame's keypoints jump 400 px (a cut in the video): warm-started from
     the first frame's fit the body cannot follow, so the frame is fitted again from
     scratch, that fit kept and the event recorded; the frame's time counts both fits."""
-    def jump(points: list[float]) -> None:
-        for k in range(0, len(points), 3):
-            if points[k + 2] > 0:
-                points[k] -= 400.0
-
-    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 1, jump, "--no-report")
+    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 1, _jump, "--no-report")
     first, second = summary["frames"]
     assert not any("refitted" in e for e in first["events"])
     assert any("refitted from scratch" in e for e in second["events"]), second["events"]
@@ -238,12 +240,7 @@ def test_sequence_mode_fits_no_frame_from_scratch_twice(sitting_data, tmp_path, 
     with a window of 8, made then and held for the path with a window of 1): the path has
     no second fit from scratch to weigh against it, and the frame's time counts its two
     fits, the warm one discarded."""
-    def jump(points: list[float]) -> None:
-        for k in range(0, len(points), 3):
-            if points[k + 2] > 0:
-                points[k] -= 400.0
-
-    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 1, jump, "--no-report",
+    summary, _ = _sequence_fit_with(sitting_data, tmp_path, 1, _jump, "--no-report",
                                     config="prox", settings=f"sequence_path_window: {window}\n")
     refitted = [f for f in summary["frames"]
                 if any("refitted from scratch" in e for e in f["events"])]
