@@ -63,6 +63,7 @@ COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f
            ("penetrating_share_as_given", "pen. % as given", "pct"),
            ("contact_recovered", "contact %", "pct"), ("sides_right", "sides %", "pct"),
            ("depth_off", "depth off %", "pct"), ("depth_bias", "depth bias %", "pct"),
+           ("size_off", "size off %", "pct"), ("size_bias", "size bias %", "pct"),
            ("seconds", "s/frame", ".2f")]
 
 
@@ -132,7 +133,8 @@ def markdown(result: dict) -> str:
             "contact % = ground-truth contact parts recovered; sides % = frames fitted with "
             "the right left/right labelling; depth off % = how far along the camera's rays the "
             "fit sits from the truth (vertex centroids' distances from the camera), as a share "
-            "of the truth's, and depth bias % its signed mean (+: too far).\n\n"
+            "of the truth's, and depth bias % its signed mean (+: too far); size off % and "
+            "size bias % the same of the fit's stature against the truth's (+: too tall).\n\n"
             "### All scenes\n\n")
     text += table(result["overall"])
     for kind, metrics in result["per_kind"].items():

@@ -117,6 +117,8 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
         swapped = errors.get("swapped", [])
         rows.append({"frame": name, "seconds": frame["seconds"],
                      "condition": condition(errors),
+                     **({"size_ratio": frame["stature_m"] / truth["stature_m"]}
+                        if "stature_m" in frame else {}),  # not in fits made before it was
                      # the fit's own statistic: inside the scan as the fitter read it
                      "penetrating_share_as_given": frame["penetrating_share"],
                      "sides_right": set(frame.get("sides_swapped", [])) == set(swapped),
@@ -127,14 +129,13 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
 def aggregate(rows: list[dict]) -> dict:
     """Means over frames; contact = share of ground-truth contact parts recovered; sides =
     share of frames fitted with the left/right labelling the detector's truth had; depth off
-    and bias = the mean of |depth ratio - 1| and of depth ratio - 1 (None for rows written
-    before the depth ratio was)."""
+    and bias = the mean of |depth ratio - 1| and of depth ratio - 1, size off and bias the
+    same of the size ratio (the fit's stature over the truth's; each None for rows written
+    before its ratio was)."""
     if not rows:
         return {}
     mean = lambda key: float(np.mean([r[key] for r in rows]))  # noqa: E731
     gt = sum(r["gt_contacts"] for r in rows)
-    ratios = np.array([r.get("depth_ratio", np.nan) for r in rows]) - 1
-    placed = not np.isnan(ratios).any()
     return {
         "frames": len(rows),
         **{k: mean(k) for k in ("pje", "v2v", "p_pje", "p_v2v", "penetrating_share",
@@ -142,6 +143,15 @@ def aggregate(rows: list[dict]) -> dict:
                                 "seconds")},
         "contact_recovered": sum(r["contacts_recovered"] for r in rows) / gt if gt else None,
         "sides_right": mean("sides_right"),  # frames whose left/right labelling the fit got
-        "depth_off": float(np.abs(ratios).mean()) if placed else None,
-        "depth_bias": float(ratios.mean()) if placed else None,
+        **_off_and_bias(rows, "depth"),
+        **_off_and_bias(rows, "size"),
     }
+
+
+def _off_and_bias(rows: list[dict], what: str) -> dict:
+    """``{what}_off`` and ``{what}_bias``: the mean of |ratio - 1| and of ratio - 1 over the
+    rows' ``{what}_ratio`` (None where a row has none)."""
+    ratios = np.array([r.get(f"{what}_ratio", np.nan) for r in rows]) - 1
+    known = not np.isnan(ratios).any()
+    return {f"{what}_off": float(np.abs(ratios).mean()) if known else None,
+            f"{what}_bias": float(ratios.mean()) if known else None}

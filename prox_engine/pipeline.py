@@ -2,6 +2,7 @@
 batches), write results atomically, and summarise. Used by the CLI and the workers."""
 from __future__ import annotations
 
+import statistics
 import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
@@ -646,6 +647,7 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     joints = result.keypoints[BODY]
     stats = {"frame": frame.name, "reprojection_error_px": error, **scene_stats,
              "root_m": [round(float(x), 4) for x in joints[BODY_25.index("mid_hip")]],
+             "stature_m": _stature(body, result),
              "seconds": result.seconds,
              "profile": {stage: {"seconds": round(result.stage_seconds.get(stage, 0.0), 4),
                                  "body_evaluations": round(evaluations, 1)}
@@ -673,6 +675,12 @@ def _write_frame(out: Path, recording: str, frame: Frame, result: FitResult,
     return stats
 
 
+def _stature(body: BodyModel, result: FitResult) -> float:
+    """The fitted person's standing height (m), from the fit's shape alone."""
+    with torch.no_grad():
+        return round(float(body.stature(result.params)[0]), 4)
+
+
 def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
                frames: list[dict], failures: list[tuple[str, str]], scene_seconds: float
                ) -> dict:
@@ -698,6 +706,8 @@ def _summarise(recording: str, source: str, config: FitConfig, sequence: bool,
         "flagged_frames": [{"frame": f["frame"], "flags": f["flags"]} for f in frames
                            if f["flags"]],
         "reprojection_error_px": mean("reprojection_error_px"),
+        # the person's height, the median of the frames' (one person a recording)
+        "stature_m": (statistics.median(f["stature_m"] for f in frames) if n else None),
         "seconds_per_frame": mean("seconds"),
         "body_evaluations_per_frame": (round(sum(stage["body_evaluations"] for stage in
                                                  profile.values()), 1) if n else None),

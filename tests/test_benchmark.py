@@ -313,6 +313,10 @@ def test_depth_ratio_reads_placement_along_the_camera_rays(body):
     assert placed["depth_bias"] == pytest.approx(0.02)
     older = aggregate([row, {**row, "depth_ratio": 1.1}])
     assert older["depth_off"] is None and older["depth_bias"] is None
+    sized = aggregate([{**row, "size_ratio": 0.95}, {**row, "size_ratio": 1.01}])
+    assert sized["size_off"] == pytest.approx(0.03)
+    assert sized["size_bias"] == pytest.approx(-0.02)
+    assert sized["depth_off"] is None and older["size_off"] is None
 
 
 def test_frames_are_told_apart_by_what_the_detector_did():

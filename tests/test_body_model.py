@@ -191,6 +191,24 @@ def test_relative_size_is_one_for_the_mean_body_and_grows_with_height(body):
     assert torch.allclose(sizes, heights / heights[0], atol=0.01), (sizes, heights)
 
 
+def test_stature_is_the_standing_height_the_benchmark_gives_its_people(body):
+    """A body's stature is its standing mesh's height by its shape alone, however it is
+    posed: the measure the benchmark's generator records for its people
+    (benchmarks.poses.stature), which the benchmark's size ratio compares a fit's with."""
+    from benchmarks.poses import stature
+    from prox_engine.body.anny_body import PHENOTYPES
+
+    tall = {"gender": 0.1, "age": float(torch.sigmoid(body.shape_init[0, 1])),
+            "muscle": 0.5, "weight": 0.6, "height": 0.55, "proportions": 0.4}
+    params = body.init_params(2, "kneeling")
+    params["shape"][1] = torch.logit(torch.tensor([tall[k] for k in PHENOTYPES]))
+    statures = body.stature(params)
+    mean = dict(zip(PHENOTYPES, torch.sigmoid(body.shape_init[0]).tolist()))
+    assert float(statures[0]) == pytest.approx(stature(body, mean), abs=2e-3)
+    assert float(statures[1]) == pytest.approx(stature(body, tall), abs=2e-3)
+    assert float(statures[1]) > float(statures[0]) + 0.05
+
+
 def test_shape_prior_is_annys_age_conditioned_beta_likelihood(body):
     """The one-table shape prior equals anny's own sixteen Beta distributions, values and
     gradients, across genders and ages (including ages between and beyond their anchors)."""

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from prox_engine.keypoints import side_swap
@@ -25,6 +26,15 @@ def test_outputs_in_prox_layout(cli_fits, body):
     assert {"global_orient", "transl", "body_pose", "phenotype", "camera", "losses",
             "timings"} <= set(result)
     assert {"data", "penetration", "contact"} <= set(result["losses"])
+    # the person's height: each frame's from its fitted shape, the recording's their median
+    from prox_engine.body.anny_body import PHENOTYPES
+    shape = body.init_params(1)
+    shape["shape"] = torch.logit(torch.tensor([[result["phenotype"][k] for k in PHENOTYPES]]))
+    assert summary["frames"][0]["stature_m"] == pytest.approx(
+        float(body.stature(shape)[0]), abs=1e-3)
+    statures = [f["stature_m"] for f in summary["frames"]]
+    assert all(1.3 < s < 2.1 for s in statures), statures
+    assert summary["stature_m"] == pytest.approx(float(np.median(statures)))
     mesh = trimesh.load(out / REC / "meshes" / frame / "000.ply", process=False)
     assert len(mesh.vertices) == 13718
     assert np.array_equal(np.asarray(mesh.faces), body.faces.numpy())  # anny's vertex order

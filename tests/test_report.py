@@ -181,8 +181,8 @@ def test_names_from_uploads_never_become_a_link_scheme():
 
 def test_pages_agree_on_penetration_and_label_the_losses(cli_fits):
     """The index, the sequence page and the frame page state the same penetration share
-    (to 0.01 %: the sequence page said 0.0 % where the index said 0.04), and the per-frame
-    loss columns say that they are losses."""
+    (to 0.01 %: the sequence page said 0.0 % where the index said 0.04), the per-frame
+    loss columns say that they are losses, and the pages give the person's height."""
     out, _ = cli_fits["prox"]
     report = out / REC / "report"
     index = (out / "index.html").read_text()
@@ -193,4 +193,6 @@ def test_pages_agree_on_penetration_and_label_the_losses(cli_fits):
     assert f"<td>{share}</td>" in index
     assert f"<dd>{share} % of vertices on average" in sequence
     assert re.search(r"<dd>\d+\.\d\d % of vertices, max depth", frame.read_text())
+    assert f"<dd>{summary['stature_m']:.2f} m standing, from the fitted shape" in sequence
+    assert re.search(r"<dd>1\.\d\d m standing, from the fitted shape</dd>", frame.read_text())
     assert "<th>loss: data</th>" in sequence

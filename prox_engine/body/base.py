@@ -203,7 +203,12 @@ class BodyModel(ABC, torch.nn.Module):
             return self.rest_height(params) / self.rest_height(mean)
 
     def rest_height(self, params: Params) -> torch.Tensor:
-        """(B,) a measure of each body's height by its shape alone: its standing mesh's
+        """(B,) a measure of each body's height by its shape alone, for comparing sizes:
+        its :meth:`stature` unless a model has a cheaper measure."""
+        return self.stature(params)
+
+    def stature(self, params: Params) -> torch.Tensor:
+        """(B,) each body's standing height (m) by its shape alone: its standing mesh's
         span along :meth:`up_axis`."""
         names = self.shape_group()
         standing = self.init_params(len(params[names[0]]))
