@@ -198,6 +198,10 @@ class FitConfig:
     # other point on its camera ray (a forearm seen from the camera projects alike
     # pointing toward it or away, into a mattress).
     forearm_restarts: bool = False
+    # ... and each arm whose elbow the detector reports (at least keypoints.HIDDEN) turned
+    # whole about the shoulder onto the elbow's other point on its camera ray (an arm
+    # reaching toward the camera projects alike reaching back from the shoulder).
+    shoulder_restarts: bool = False
     # Where the detector reports no knee or ankle at keypoints.HIDDEN or more and the
     # fitted knees lie in the image (legs behind furniture), the fit is also tried, just
     # before the scale search, with the legs posed as each start posture's (standing,

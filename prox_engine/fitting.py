@@ -19,9 +19,9 @@ from .camera import Camera
 from .config import FitConfig, Stage
 from .geometry import VertexNormals, picked, ray_points_at, sum_into, turned_onto_ray
 from .keypoints import (ANKLES, ARMS, BODY, FACE, FEET, FOREARMS, HIDDEN, HIPS, KNEES, MID_HIP,
-                        LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, Keypoints, ankle_seen,
-                        cut_legs, nothing_below_knees, side_swap, thighs_hanging, thighs_hidden,
-                        toes_unseen)
+                        LABELLINGS, LEFT_HAND, RIGHT_HAND, SEEN, SHINS, SHOULDERS, Keypoints,
+                        ankle_seen, cut_legs, nothing_below_knees, side_swap, thighs_hanging,
+                        thighs_hidden, toes_unseen)
 from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .rescale import rescaled
@@ -439,7 +439,8 @@ class Fitter:
                     counts = [1 + len(variants)] * len(frames)
                     choice = _Choice(index + 2, by_scene=False)
             if (warm_start is None and max(counts) == 1
-                  and (self.config.leg_restarts or self.config.forearm_restarts)
+                  and (self.config.leg_restarts or self.config.forearm_restarts
+                       or self.config.shoulder_restarts)
                   and index == self.config.start_stages and index + 1 < len(stages)
                   and self._scales_searched()):
                 restarts = self._limb_restarts(rows)
@@ -573,12 +574,14 @@ class Fitter:
         table point toward the camera or hang down alike); with ``knee_restarts``, per
         leg, the leg posed onto its knee's and ankle's camera rays
         (:meth:`_legs_onto_rays`); with ``forearm_restarts``, per arm, the forearm about
-        the elbow (it projects alike pointing toward the camera or away). With each, which
-        rows are restarts worth trying ((rows,) bool): those whose ankle the detector
-        clearly saw (for the rays, whose knee the fit misses; for a forearm, whose wrist it
-        reported at least HIDDEN), whose first point moved moves by at least MIRROR_MIN and
-        could be posed there within MIRROR_REACH (a straight leg would bend forward;
-        KNEE_REACH on the rays); none for a turn without such a row."""
+        the elbow (it projects alike pointing toward the camera or away); with
+        ``shoulder_restarts``, per arm, the whole arm about the shoulder (an arm reaching
+        toward the camera projects alike reaching back). With each, which rows are
+        restarts worth trying ((rows,) bool): those whose ankle the detector clearly saw
+        (for the rays, whose knee the fit misses; for a forearm, whose wrist it reported
+        at least HIDDEN; for an arm, whose elbow), whose first point moved moves by at
+        least MIRROR_MIN and could be posed there within MIRROR_REACH (a straight leg would
+        bend forward; KNEE_REACH on the rays); none for a turn without such a row."""
         body = self.body
         with torch.no_grad():
             kp = body(rows.params, vertices=False).keypoints[:, BODY]
@@ -611,6 +614,9 @@ class Fitter:
         if self.config.forearm_restarts:
             for elbow, wrist in FOREARMS:
                 add_turn(elbow, [wrist], rows.detected[:, wrist] >= HIDDEN)
+        if self.config.shoulder_restarts:
+            for shoulder, (elbow, wrist) in zip(SHOULDERS, FOREARMS):
+                add_turn(shoulder, [elbow, wrist], rows.detected[:, elbow] >= HIDDEN)
         if self.config.leg_restarts and self.config.hip_restarts:
             goals.append(both)
             useful.append(both_useful)

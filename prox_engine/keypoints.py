@@ -47,6 +47,7 @@ ANKLES = [11, 14]  # right, left: a frame cut off at the knees has neither
 SHINS = [(10, [11, 22, 23, 24]), (13, [14, 19, 20, 21])]
 HIPS = [9, 12]  # right, left: where each leg of SHINS hangs from
 FOREARMS = [(3, 4), (6, 7)]  # (elbow, wrist), right then left
+SHOULDERS = [2, 5]  # right, left: where each arm of FOREARMS hangs from
 KNEES = [knee for knee, _ in SHINS]
 FEET = [j for _, foot in SHINS for j in foot]  # ankles, toes and heels
 TOES = [j for _, foot in SHINS for j in foot[1:3]]  # big and small toes
