@@ -1084,6 +1084,7 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(), [None],
                  [()])
     config = load_config("prox")
+    config.shoulder_restarts = False  # the whole arms' restarts: tested below
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
     restarts = fitter._limb_restarts(rows)
     assert [bool(tried) for _, tried in restarts] == [True, True]
@@ -1104,6 +1105,7 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
 
     # without the leg restarts, the forearms are still restarted, in a fit too
     config = load_config("prox-no-leg-restarts")
+    config.shoulder_restarts = False
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
     rows.conf[:], rows.detected[:] = 0.9, 0.9  # the ankles seen
     assert len(fitter._limb_restarts(rows)) == 2
@@ -1116,6 +1118,57 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     fitter._limb_restarts = counted
     fitter.fit([frame_of(before)])
     assert calls
+
+
+def test_shoulder_restarts_turn_a_seen_arm_whole_about_the_shoulder_onto_its_elbows_other_depth(
+        body):
+    """The body of the forearm test (arms raised and bent toward a tilted, rolled,
+    off-centre camera, legs unseen): in `prox` each arm is also restarted turned whole
+    about the shoulder until the elbow lies on the other point of its camera ray at the
+    upper arm's length (an arm reaching toward the camera projects alike reaching back
+    from the shoulder): the elbow projects where it did but moves in depth, the wrist
+    goes with it, and the trunk, head and legs stay within 4 cm. An elbow reported under
+    HIDDEN gets no such restart; `prox-no-shoulder-restarts` gives only the forearms'."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import FEET, FOREARMS, HIDDEN, KNEES, SHOULDERS
+
+    cam2world = tilted_camera()
+    params = _posed_params(body, cam2world)
+    for side in ("L", "R"):
+        params["body_pose"][0, BODY_BONES.index(f"upperarm01.{side}")] = torch.tensor(
+            [1.0, 0.0, 0.0])
+        params["body_pose"][0, BODY_BONES.index(f"lowerarm01.{side}")] = torch.tensor(
+            [0.8, 0.0, 0.0])
+    with torch.no_grad():
+        before = body(params, vertices=False).keypoints[0, :25]
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, KNEES + FEET] = 0.0  # no leg restart
+    rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(), [None],
+                 [()])
+    fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
+    restarts = fitter._limb_restarts(rows)
+    assert len(restarts) == 4  # two forearms, then two arms
+    arms = [j for _, (elbow, wrist) in zip(SHOULDERS, FOREARMS) for j in (elbow, wrist)]
+    for shoulder, (elbow, wrist), (variant, tried) in zip(SHOULDERS, FOREARMS, restarts[2:]):
+        assert bool(tried[0])
+        with torch.no_grad():
+            after = body(variant, vertices=False).keypoints[0, :25]
+        was, moved = before[elbow], after[elbow]
+        # posed within MIRROR_REACH of the goal: a few pixels at 3 m
+        assert float((CAMERA.project(moved) - CAMERA.project(was)).norm()) < 10.0
+        depth = 2 * float(was / was.norm() @ before[shoulder]) - float(was.norm())
+        assert abs(depth - float(was.norm())) > 0.1  # a real move in depth
+        assert abs(float(moved.norm()) - depth) < 0.05
+        assert float((after[wrist] - before[wrist]).norm()) > 0.1  # the forearm goes along
+        held = [j for j in range(25) if j not in arms and j not in SHOULDERS]
+        assert float((after[held] - before[held]).norm(dim=1).max()) < 0.04
+    rows.detected[:, FOREARMS[0][0]] = HIDDEN - 0.1  # the right elbow faint
+    assert len(fitter._limb_restarts(rows)) == 3
+    without = Fitter(body, CAMERA, load_config("prox-no-shoulder-restarts"),
+                     floor_scene(cam2world))
+    rows.detected[:] = 0.9
+    assert len(without._limb_restarts(rows)) == 2
 
 
 def _kneeler_fitted_standing(body, cam2world: np.ndarray
