@@ -32,7 +32,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-one-start",
            "prox-start-by-data", "prox-start-priors", "prox-start-arms", "prox-same-thighs",
            "prox-thighs-by-ankles", "prox-start-feet", "prox-sizeless-start",
-           "prox-no-arm-restarts", "prox-no-forearm-restarts", "prox-no-shoulder-restarts",
+           "prox-no-arm-restarts", "prox-no-forearm-restarts", "prox-shoulder-restarts",
            "prox-no-leg-restarts",
            "prox-no-hip-restarts", "prox-no-knee-restarts", "prox-no-hidden-legs",
            "prox-hanging-thighs-counted",

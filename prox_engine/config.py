@@ -200,7 +200,8 @@ class FitConfig:
     forearm_restarts: bool = False
     # ... and each arm whose elbow the detector reports (at least keypoints.HIDDEN) turned
     # whole about the shoulder onto the elbow's other point on its camera ray (an arm
-    # reaching toward the camera projects alike reaching back from the shoulder).
+    # reaching toward the camera projects alike reaching back from the shoulder; the
+    # `prox-shoulder-restarts` variant: a turned arm can move the whole body).
     shoulder_restarts: bool = False
     # Where the detector reports no knee or ankle at keypoints.HIDDEN or more and the
     # fitted knees lie in the image (legs behind furniture), the fit is also tried, just

@@ -155,15 +155,13 @@ def test_sequence_mode_keeps_the_fits_on_the_path_of_least_motion(sitting_data, 
     the fit on the path along which the body moves least. The first frame, cut off below
     the knees, follows the anchor (the second): its fit from scratch lies nearer the
     anchor's than its warm-started fit and is kept, the warm fit's cost charged to it; the
-    anchor, fitted from scratch in the chain, has no other fit. (Without the arms'
-    restarts about the shoulder: with them both frames' fits change and the path keeps
-    the first frame's warm fit. This tests the path, on the fits it was set up with.)"""
+    anchor, fitted from scratch in the chain, has no other fit."""
     def hide_feet(points: list[float]) -> None:
         for k in (11, 14, 19, 20, 21, 22, 23, 24):
             points[3 * k:3 * k + 3] = [0.0, 0.0, 0.0]
 
     summary, _ = _sequence_fit_with(sitting_data, tmp_path, 0, hide_feet, "--no-report",
-                                    config="prox", settings="shoulder_restarts: false")
+                                    config="prox")
     first, anchor = summary["frames"]
     assert "anchor_search" in anchor["profile"] or "initialise" in anchor["profile"]
     assert not {"warm_fit", "fresh_fit"} & set(anchor["profile"])

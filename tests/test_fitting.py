@@ -1084,7 +1084,6 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(), [None],
                  [()])
     config = load_config("prox")
-    config.shoulder_restarts = False  # the whole arms' restarts: tested below
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
     restarts = fitter._limb_restarts(rows)
     assert [bool(tried) for _, tried in restarts] == [True, True]
@@ -1105,7 +1104,6 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
 
     # without the leg restarts, the forearms are still restarted, in a fit too
     config = load_config("prox-no-leg-restarts")
-    config.shoulder_restarts = False
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
     rows.conf[:], rows.detected[:] = 0.9, 0.9  # the ankles seen
     assert len(fitter._limb_restarts(rows)) == 2
@@ -1123,12 +1121,12 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
 def test_shoulder_restarts_turn_a_seen_arm_whole_about_the_shoulder_onto_its_elbows_other_depth(
         body):
     """The body of the forearm test (arms raised and bent toward a tilted, rolled,
-    off-centre camera, legs unseen): in `prox` each arm is also restarted turned whole
-    about the shoulder until the elbow lies on the other point of its camera ray at the
-    upper arm's length (an arm reaching toward the camera projects alike reaching back
-    from the shoulder): the elbow projects where it did but moves in depth, the wrist
-    goes with it, and the trunk, head and legs stay within 4 cm. An elbow reported under
-    HIDDEN gets no such restart; `prox-no-shoulder-restarts` gives only the forearms'."""
+    off-centre camera, legs unseen): in `prox-shoulder-restarts` each arm is also
+    restarted turned whole about the shoulder until the elbow lies on the other point of
+    its camera ray at the upper arm's length (an arm reaching toward the camera projects
+    alike reaching back from the shoulder): the elbow projects where it did but moves in
+    depth, the wrist goes with it, and the trunk, head and legs stay within 4 cm. An
+    elbow reported under HIDDEN gets no such restart; `prox` gives only the forearms'."""
     from prox_engine.body.anny_body import BODY_BONES
     from prox_engine.fitting import _Rows
     from prox_engine.keypoints import FEET, FOREARMS, HIDDEN, KNEES, SHOULDERS
@@ -1146,7 +1144,8 @@ def test_shoulder_restarts_turn_a_seen_arm_whole_about_the_shoulder_onto_its_elb
     conf[:, KNEES + FEET] = 0.0  # no leg restart
     rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(), [None],
                  [()])
-    fitter = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
+    fitter = Fitter(body, CAMERA, load_config("prox-shoulder-restarts"),
+                    floor_scene(cam2world))
     restarts = fitter._limb_restarts(rows)
     assert len(restarts) == 4  # two forearms, then two arms
     arms = [j for _, (elbow, wrist) in zip(SHOULDERS, FOREARMS) for j in (elbow, wrist)]
@@ -1165,8 +1164,7 @@ def test_shoulder_restarts_turn_a_seen_arm_whole_about_the_shoulder_onto_its_elb
         assert float((after[held] - before[held]).norm(dim=1).max()) < 0.04
     rows.detected[:, FOREARMS[0][0]] = HIDDEN - 0.1  # the right elbow faint
     assert len(fitter._limb_restarts(rows)) == 3
-    without = Fitter(body, CAMERA, load_config("prox-no-shoulder-restarts"),
-                     floor_scene(cam2world))
+    without = Fitter(body, CAMERA, load_config("prox"), floor_scene(cam2world))
     rows.detected[:] = 0.9
     assert len(without._limb_restarts(rows)) == 2
 
