@@ -1056,6 +1056,40 @@ def test_limb_restarts_turn_a_seen_shin_about_the_knee_onto_its_ankles_other_dep
     assert len(fitter._limb_restarts(rows)) == 1
 
 
+def _arms_raised(body, cam2world: np.ndarray):
+    """A mean body facing ``cam2world`` with its arms raised and bent toward it: its body
+    keypoints (25, 3) and its one fit row, every keypoint seen but the legs' (no leg
+    restart)."""
+    from prox_engine.body.anny_body import BODY_BONES
+    from prox_engine.fitting import _Rows
+    from prox_engine.keypoints import FEET, KNEES
+
+    params = _posed_params(body, cam2world)
+    for side in ("L", "R"):
+        params["body_pose"][0, BODY_BONES.index(f"upperarm01.{side}")] = torch.tensor(
+            [1.0, 0.0, 0.0])
+        params["body_pose"][0, BODY_BONES.index(f"lowerarm01.{side}")] = torch.tensor(
+            [0.8, 0.0, 0.0])
+    with torch.no_grad():
+        before = body(params, vertices=False).keypoints[0, :25]
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, KNEES + FEET] = 0.0
+    return before, _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(),
+                         [None], [()])
+
+
+def _on_its_rays_other_depth(before: torch.Tensor, after: torch.Tensor, pivot: int,
+                             point: int, px: float, within: float) -> None:
+    """Keypoint ``point`` of ``after`` projects within ``px`` of where it did in
+    ``before`` and lies within ``within`` m of the other point of its camera ray at its
+    distance from ``pivot``: a real move in depth (over 10 cm)."""
+    moved, was = after[point], before[point]
+    assert float((CAMERA.project(moved) - CAMERA.project(was)).norm()) < px
+    depth = 2 * float(was / was.norm() @ before[pivot]) - float(was.norm())
+    assert abs(depth - float(was.norm())) > 0.1
+    assert abs(float(moved.norm()) - depth) < within
+
+
 def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_other_depth(
         body):
     """A body with its arms raised and bent toward a tilted, rolled, off-centre camera,
@@ -1066,23 +1100,11 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     within 4 cm (the shoulder gives). A wrist reported under HIDDEN gets no restart;
     without the setting (`prox-no-forearm-restarts`), no forearm does. Without the leg
     restarts (`prox-no-leg-restarts`), a fit still restarts the forearms."""
-    from prox_engine.body.anny_body import BODY_BONES
     from prox_engine.fitting import _Rows
-    from prox_engine.keypoints import FEET, FOREARMS, HIDDEN, KNEES
+    from prox_engine.keypoints import FOREARMS, HIDDEN
 
     cam2world = tilted_camera()
-    params = _posed_params(body, cam2world)
-    for side in ("L", "R"):
-        params["body_pose"][0, BODY_BONES.index(f"upperarm01.{side}")] = torch.tensor(
-            [1.0, 0.0, 0.0])
-        params["body_pose"][0, BODY_BONES.index(f"lowerarm01.{side}")] = torch.tensor(
-            [0.8, 0.0, 0.0])
-    with torch.no_grad():
-        before = body(params, vertices=False).keypoints[0, :25]
-    conf = torch.full((1, N_KEYPOINTS), 0.9)
-    conf[:, KNEES + FEET] = 0.0  # no leg restart
-    rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(), [None],
-                 [()])
+    before, rows = _arms_raised(body, cam2world)
     config = load_config("prox")
     fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
     restarts = fitter._limb_restarts(rows)
@@ -1090,11 +1112,7 @@ def test_forearm_restarts_turn_a_seen_forearm_about_the_elbow_onto_its_wrists_ot
     for (elbow, wrist), (variant, _) in zip(FOREARMS, restarts):
         with torch.no_grad():
             after = body(variant, vertices=False).keypoints[0, :25]
-        moved, was = after[wrist], before[wrist]
-        assert float((CAMERA.project(moved) - CAMERA.project(was)).norm()) < 5.0
-        depth = 2 * float(was / was.norm() @ before[elbow]) - float(was.norm())
-        assert abs(depth - float(was.norm())) > 0.1  # a real move in depth
-        assert abs(float(moved.norm()) - depth) < 0.02
+        _on_its_rays_other_depth(before, after, elbow, wrist, 5.0, 0.02)
         others = [j for j in range(25) if j != wrist]  # the shoulder gives up to 4 cm
         assert float((after[others] - before[others]).norm(dim=1).max()) < 0.04
     rows.detected[:, FOREARMS[0][1]] = HIDDEN - 0.1  # the right wrist faint
@@ -1127,23 +1145,10 @@ def test_shoulder_restarts_turn_a_seen_arm_whole_about_the_shoulder_onto_its_elb
     alike reaching back from the shoulder): the elbow projects where it did but moves in
     depth, the wrist goes with it, and the trunk, head and legs stay within 4 cm. An
     elbow reported under HIDDEN gets no such restart; `prox` gives only the forearms'."""
-    from prox_engine.body.anny_body import BODY_BONES
-    from prox_engine.fitting import _Rows
-    from prox_engine.keypoints import FEET, FOREARMS, HIDDEN, KNEES, SHOULDERS
+    from prox_engine.keypoints import FOREARMS, HIDDEN, SHOULDERS
 
     cam2world = tilted_camera()
-    params = _posed_params(body, cam2world)
-    for side in ("L", "R"):
-        params["body_pose"][0, BODY_BONES.index(f"upperarm01.{side}")] = torch.tensor(
-            [1.0, 0.0, 0.0])
-        params["body_pose"][0, BODY_BONES.index(f"lowerarm01.{side}")] = torch.tensor(
-            [0.8, 0.0, 0.0])
-    with torch.no_grad():
-        before = body(params, vertices=False).keypoints[0, :25]
-    conf = torch.full((1, N_KEYPOINTS), 0.9)
-    conf[:, KNEES + FEET] = 0.0  # no leg restart
-    rows = _Rows(params, CAMERA.project(before)[None], conf, conf[:, :25].clone(), [None],
-                 [()])
+    before, rows = _arms_raised(body, cam2world)
     fitter = Fitter(body, CAMERA, load_config("prox-shoulder-restarts"),
                     floor_scene(cam2world))
     restarts = fitter._limb_restarts(rows)
@@ -1153,12 +1158,8 @@ def test_shoulder_restarts_turn_a_seen_arm_whole_about_the_shoulder_onto_its_elb
         assert bool(tried[0])
         with torch.no_grad():
             after = body(variant, vertices=False).keypoints[0, :25]
-        was, moved = before[elbow], after[elbow]
         # posed within MIRROR_REACH of the goal: a few pixels at 3 m
-        assert float((CAMERA.project(moved) - CAMERA.project(was)).norm()) < 10.0
-        depth = 2 * float(was / was.norm() @ before[shoulder]) - float(was.norm())
-        assert abs(depth - float(was.norm())) > 0.1  # a real move in depth
-        assert abs(float(moved.norm()) - depth) < 0.05
+        _on_its_rays_other_depth(before, after, shoulder, elbow, 10.0, 0.05)
         assert float((after[wrist] - before[wrist]).norm()) > 0.1  # the forearm goes along
         held = [j for j in range(25) if j not in arms and j not in SHOULDERS]
         assert float((after[held] - before[held]).norm(dim=1).max()) < 0.04
