@@ -40,7 +40,6 @@ SIDE_PAIRS = {"legs": [(12, 9), (13, 10), (14, 11), (19, 22), (20, 23), (21, 24)
 
 # Torso edges (shoulder-hip) for the similar-triangles depth initialisation.
 TORSO_EDGES = [(2, 9), (5, 12)]  # right shoulder - right hip, left shoulder - left hip
-SHOULDERS = (2, 5)
 MID_HIP, NECK = 8, 1  # the trunk, for the upright prior
 ANKLES = [11, 14]  # right, left: a frame cut off at the knees has neither
 # Per leg (right, left), the knee and what hangs from it: ankle, big toe, small toe, heel.
