@@ -43,7 +43,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-scene-translates", "prox-no-scene-guard",
            "prox-no-floating-restart", "prox-unchecked-swaps", "prox-swap-ties-detected",
            "prox-legs-swap-check", "prox-no-give",
-           "prox-feet-tolerant", "prox-unlevelled",
+           "prox-feet-tolerant", "prox-unlevelled", "prox-lying-sink",
            "prox-given-registration", "prox-every-vertex", "prox-shape-early", "prox-cushion",
            "prox", "prox-soft", "prox" + SEQUENCE,
            "prox-first-anchor" + SEQUENCE, "prox-anchor-any-labels" + SEQUENCE,

@@ -268,6 +268,13 @@ class FitConfig:
     # deep in the scan; the feet and hands stay on it. 0: on the surface, as the paper's
     # terms.
     soft_sink: float = 0.0
+    # Depth (m) a body whose trunk lies within level_rho of level may sink into the scan,
+    # beyond scale_search.PENETRATION_MARGIN, before the scale search counts it as
+    # penetrating: a mattress gives under the whole of a lying body, heels and head too.
+    # Rested on top, lying bodies were placed 1-4 cm high, too near the camera. 0 in
+    # `prox`; 2 cm in `prox-lying-sink`, which gained on spent seeds' beds but not on
+    # fresh ones (in sequence mode it lost).
+    lying_sink: float = 0.0
     # Depth (m) the feet may enter the scan before the penetration term counts them (added
     # to penetration_tolerance; the contact term still has them on the surface): a scan
     # registered a centimetre or two off the camera puts correctly placed soles that deep

@@ -26,7 +26,7 @@ from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .rescale import rescaled
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, feet_carried,
-                           kneelers_toes, size_prior, standing_counts, standing_legs,
+                           kneelers_toes, lying, size_prior, standing_counts, standing_legs,
                            toe_vertices, unseen_feet_on_kneeling_legs)
 from .scene import Scene
 from .with_gradient import with_gradient
@@ -1057,6 +1057,7 @@ class Fitter:
                        if counted is None else counted) & ~uncounted
         sizes = self._sizes(params)
         feet = feet_carried(joints, detected, up) if feet_carry else None
+        sinks = cfg.lying_sink * lying(joints, up, cfg.level_rho) if cfg.lying_sink else None
 
         def search(rows: torch.Tensor, ceilings: torch.Tensor | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1069,6 +1070,7 @@ class Fitter:
                               [faint[r] for r in rows] if cfg.scale_faint_legs else None,
                               ceilings, None if counted is None else counted[rows],
                               sizes[rows], None if feet is None else feet[rows],
+                              None if sinks is None else sinks[rows],
                               size_weight=self._size_weight())
         return search, sizes
 

@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import torch
 
-from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, SEEN, TOES, toes_unseen
+from .keypoints import ANKLES, HIDDEN, HIPS, KNEES, MID_HIP, NECK, SEEN, TOES, toes_unseen
 from .losses import gmof, nearest_contacts, part_vertices
 from .scene import Scene
 
@@ -151,6 +151,13 @@ def feet_carried(keypoints: torch.Tensor, detected: torch.Tensor, up: torch.Tens
     return foot_seen & _plumb_legs(keypoints, up, FEET_CARRY_LEG)
 
 
+def lying(keypoints: torch.Tensor, up: torch.Tensor, within: float) -> torch.Tensor:
+    """(B,) bool: the trunk (mid-hip to neck) of the fitted BODY_25 ``keypoints`` (B, 25,
+    3) within ``within`` (rad) of level, ``up`` world up in their frame."""
+    trunk = keypoints[:, NECK] - keypoints[:, MID_HIP]
+    return (trunk @ up).abs() < math.sin(within) * trunk.norm(dim=-1)
+
+
 def standing_counts(standing: torch.Tensor, parts: torch.Tensor) -> torch.Tensor:
     """(B, P) bool: the contact parts the search counts for each body: all of them, but
     for the ``standing`` (B,) bool bodies only ``parts`` (P,) bool (:data:`STANDING_PARTS`)."""
@@ -206,7 +213,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                faint_joints: list[torch.Tensor] | None = None,
                ceilings: torch.Tensor | None = None,
                counted_parts: torch.Tensor | None = None,
-               sizes: torch.Tensor | None = None, feet: torch.Tensor | None = None, *,
+               sizes: torch.Tensor | None = None, feet: torch.Tensor | None = None,
+               sinks: torch.Tensor | None = None, *,
                size_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the scale about the camera centre that minimises the share of contact
     parts not touching the scene (each part by its best vertex) plus the share of
@@ -224,7 +232,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     ``size_weight``, reads each body's size at a scale as ``sizes`` ((B,); without, 1)
     times the scale (:func:`size_prior`).
     The ``feet`` ((B,) bool, :func:`feet_carried`) bodies rest only on their lowest
-    vertices (FEET_CARRY_LEG).
+    vertices (FEET_CARRY_LEG); each body's vertices may sink its ``sinks`` ((B,) m)
+    deeper than PENETRATION_MARGIN before they count as penetrating.
     Returns (B,) scales and (B,) their costs without the size prior (0: every part
     touches, nothing enters, the body rests on a surface): how well the body can meet the
     scene at all, comparable between bodies fitted at different sizes. Scales that cannot
@@ -235,6 +244,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     26 bodies at once in batches: one call of each scene query per body and round cost a
     fifth of the search)."""
     sizes = torch.ones(len(vertices)) if sizes is None else sizes
+    margins = PENETRATION_MARGIN + (torch.zeros(len(vertices)) if sinks is None else sinks)
     prior = size_prior(SCALES, size_weight, sizes[:, None])  # (B, 97)
     sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
     placed, carrying = vertices[:, sampled], carrying[sampled]
@@ -251,7 +261,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
                    for b in range(len(vertices))] if use_support else [])
 
     def penetration(bodies: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-        depth = torch.relu(-scene.signed_distance(scales * placed[bodies]) - PENETRATION_MARGIN)
+        depth = torch.relu(-scene.signed_distance(scales * placed[bodies])
+                           - margins[bodies, None])
         return PENETRATION_WEIGHT * ((depth / PENETRATION_SCALE).clamp(max=1.0) * counted
                                      ).mean(1)
 

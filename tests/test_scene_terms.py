@@ -730,6 +730,50 @@ def test_scale_search_keeps_a_seated_body_before_a_sofa_back(body):
     assert abs(float(scale) - 1.0) < 0.02
 
 
+def test_scale_search_lets_a_lying_body_sink_into_its_mattress(body):
+    """A body lying on its back, sunk 3 cm into a mattress (seen by a tilted, rolled,
+    off-centre camera): counted as penetrating from PENETRATION_MARGIN on, the search
+    lifts it toward the camera onto the mattress; with a sink of 2 cm for lying bodies
+    (FitConfig.lying_sink), it stays where it lies. The trunk reads as lying, a standing
+    one's does not."""
+    from prox_engine.geometry import vertex_normals
+    from prox_engine.keypoints import BODY
+    from prox_engine.scale_search import lying
+
+    from .test_fitting import tilted_camera
+
+    on_back = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # y -> -z
+    with torch.no_grad():
+        out = body(body.init_params(1))  # standing, back toward +y
+    standing_joints = out.keypoints[:, BODY]
+    world, joints = out.vertices[0] @ on_back.T, out.keypoints[0, BODY] @ on_back.T
+    top, sink = 0.5, 0.03
+    centre = (world.max(0).values + world.min(0).values) / 2
+    shift = torch.tensor([-float(centre[0]), -float(centre[1]),
+                          top - sink - float(world[:, 2].min())])
+    world, joints = world + shift, joints + shift
+    mattress = trimesh.creation.box([1.0, 2.4, top])
+    mattress.apply_translation([0.0, 0.0, top / 2])
+    room = trimesh.util.concatenate([plane_mesh(size=6.0), mattress])
+    room = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(room.vertices, room.faces, 0.1))
+    cam2world = tilted_camera(position=(1.4, -2.2, 2.0), target=(0.1, 0.2, 0.5))
+    scene = _seen_scene(room, cam2world, dim=128)
+    camera = _in_camera(world, cam2world)[None]
+    up = scene.up_in_camera()
+    assert lying(_in_camera(joints, cam2world)[None], up, 0.4).tolist() == [True]
+    assert lying(_in_camera(standing_joints[0], cam2world)[None], up, 0.4).tolist() == [False]
+
+    def search(sinks):
+        return float(best_scale(camera, vertex_normals(camera, body.faces),
+                                body.scene_vertices, _carrying(body),
+                                [body.contact_parts[p] for p in ("back", "gluteus")], scene,
+                                True, True, rho=0.05, max_angle_deg=45, max_distance=0.15,
+                                sinks=sinks)[0][0])
+
+    assert search(None) < 0.992  # lifted onto the mattress, two steps of the grid near
+    assert abs(search(torch.tensor([0.02])) - 1.0) < 0.008  # within a step
+
+
 def test_scale_search_keeps_a_body_whose_toes_point_into_the_floor(body):
     """A correctly placed standing body whose feet are fitted pointing down (as a
     kneeler's often are), the toes 10 cm into the floor: the scene stages bend a foot
