@@ -115,15 +115,19 @@ STANDING_LEG = math.radians(30)
 STANDING_PARTS = ("left_foot", "right_foot")
 
 
+def _slope(keypoints: torch.Tensor, up: torch.Tensor, start: list[int], end: list[int]
+           ) -> torch.Tensor:
+    """Sines of the elevation (B, len(start)) of the segments from ``start`` to ``end``
+    in BODY_25 ``keypoints`` (B, 25, 3); ``up`` world up in their frame."""
+    segment = keypoints[:, end] - keypoints[:, start]
+    return (segment @ up) / segment.norm(dim=-1).clamp_min(1e-9)
+
+
 def _elevations(keypoints: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Sines of the elevation (B, 2) of the thighs (hip to knee) and shins (knee to
     ankle), right leg then left, in BODY_25 ``keypoints`` (B, 25, 3); ``up`` world up in
     their frame."""
-    def slope(start: list[int], end: list[int]) -> torch.Tensor:
-        segment = keypoints[:, end] - keypoints[:, start]
-        return (segment @ up) / segment.norm(dim=-1).clamp_min(1e-9)
-
-    return slope(HIPS, KNEES), slope(KNEES, ANKLES)
+    return _slope(keypoints, up, HIPS, KNEES), _slope(keypoints, up, KNEES, ANKLES)
 
 
 def _plumb_legs(keypoints: torch.Tensor, up: torch.Tensor, within: float) -> torch.Tensor:
@@ -154,8 +158,7 @@ def feet_carried(keypoints: torch.Tensor, detected: torch.Tensor, up: torch.Tens
 def lying(keypoints: torch.Tensor, up: torch.Tensor, within: float) -> torch.Tensor:
     """(B,) bool: the trunk (mid-hip to neck) of the fitted BODY_25 ``keypoints`` (B, 25,
     3) within ``within`` (rad) of level, ``up`` world up in their frame."""
-    trunk = keypoints[:, NECK] - keypoints[:, MID_HIP]
-    return (trunk @ up).abs() < math.sin(within) * trunk.norm(dim=-1)
+    return _slope(keypoints, up, [MID_HIP], [NECK])[:, 0].abs() < math.sin(within)
 
 
 def standing_counts(standing: torch.Tensor, parts: torch.Tensor) -> torch.Tensor:
