@@ -65,6 +65,8 @@ COLUMNS = [("pje", "PJE", ".1f"), ("v2v", "V2V", ".1f"), ("p_pje", "p.PJE", ".1f
            ("contact_recovered", "contact %", "pct"), ("sides_right", "sides %", "pct"),
            ("depth_off", "depth off %", "pct"), ("depth_bias", "depth bias %", "pct"),
            ("size_off", "size off %", "pct"), ("size_bias", "size bias %", "pct"),
+           ("scene_height_off", "scene height off cm", "cm"),
+           ("scene_height_bias", "scene height bias cm", "cm"),
            ("seconds", "s/frame", ".2f")]
 
 
@@ -135,7 +137,9 @@ def markdown(result: dict) -> str:
             "the right left/right labelling; depth off % = how far along the camera's rays the "
             "fit sits from the truth (vertex centroids' distances from the camera), as a share "
             "of the truth's, and depth bias % its signed mean (+: too far); size off % and "
-            "size bias % the same of the fit's stature against the truth's (+: too tall).\n\n"
+            "size bias % the same of the fit's stature against the truth's (+: too tall); "
+            "scene height off and bias cm: how far the scene as the fitter registered it sits "
+            "from its true place under the true body's lowest points (+: too high).\n\n"
             "### All scenes\n\n")
     text += table(result["overall"])
     for kind, metrics in result["per_kind"].items():

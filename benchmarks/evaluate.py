@@ -81,6 +81,24 @@ def depth_ratio(fit_vertices: np.ndarray, gt_vertices: np.ndarray) -> float:
     return float(np.linalg.norm(fit_vertices.mean(0)) / np.linalg.norm(gt_vertices.mean(0)))
 
 
+# The truth's vertices this near its lowest point carry it (soles, buttocks, a lying back)
+SUPPORT_BAND_M = 0.02
+
+
+def scene_height_error(gt_vertices: np.ndarray, registered: np.ndarray, true: np.ndarray
+                       ) -> float:
+    """How far above its true place (m) the scene sits, as the fitter registered it
+    (``registered``, its cam2world), under the true body's lowest vertices (``gt_vertices``
+    (V, 3) camera frame; ``true`` the true cam2world; world z up): +1.5 cm, a floor or seat
+    read that much too high, on which the scale search rests the body nearer the camera.
+    The colour-to-depth calibration's pitch goes into the registration unseen
+    (``kinect.CALIBRATION_ERROR``); this shows it."""
+    height = gt_vertices @ true[2, :3] + true[2, 3]
+    read = gt_vertices @ registered[2, :3] + registered[2, 3]
+    low = height <= height.min() + SUPPORT_BAND_M
+    return float((height[low] - read[low]).mean())
+
+
 # What the generator's detector did to a frame (benchmarks.detector), worst first: a frame
 # cut off below the knees by the image's edge (benchmarks.generate.cut_at_edge) counts as
 # cut off whatever else happened to it, a blurred one as blurred, and so on.
@@ -104,6 +122,7 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
     contacts of the fit and the truth are measured in the real scene)."""
     summary = json.loads((Path(fitted) / recording / "summary.json").read_text())
     truth = truth_meta(data, recording)
+    registered = summary.get("registration", {}).get("cam2world")  # not in older fits
     rows = []
     for frame in summary["frames"]:
         name = frame["frame"]
@@ -119,6 +138,9 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
                      "condition": condition(errors),
                      **({"size_ratio": frame["stature_m"] / truth["stature_m"]}
                         if "stature_m" in frame else {}),  # not in fits made before it was
+                     **({"scene_height_error_m": scene_height_error(
+                         gt, np.asarray(registered), np.asarray(truth["cam2world"]))}
+                        if registered is not None else {}),
                      # the fit's own statistic: inside the scan as the fitter read it
                      "penetrating_share_as_given": frame["penetrating_share"],
                      "sides_right": set(frame.get("sides_swapped", [])) == set(swapped),
@@ -130,8 +152,8 @@ def aggregate(rows: list[dict]) -> dict:
     """Means over frames; contact = share of ground-truth contact parts recovered; sides =
     share of frames fitted with the left/right labelling the detector's truth had; depth off
     and bias = the mean of |depth ratio - 1| and of depth ratio - 1, size off and bias the
-    same of the size ratio (the fit's stature over the truth's; each None for rows written
-    before its ratio was)."""
+    same of the size ratio (the fit's stature over the truth's), scene height off and bias
+    the same of :func:`scene_height_error` (m; each None for rows written before it was)."""
     if not rows:
         return {}
     mean = lambda key: float(np.mean([r[key] for r in rows]))  # noqa: E731
@@ -145,13 +167,15 @@ def aggregate(rows: list[dict]) -> dict:
         "sides_right": mean("sides_right"),  # frames whose left/right labelling the fit got
         **_off_and_bias(rows, "depth"),
         **_off_and_bias(rows, "size"),
+        **_off_and_bias(rows, "scene_height", "error_m", 0.0),
     }
 
 
-def _off_and_bias(rows: list[dict], what: str) -> dict:
-    """``{what}_off`` and ``{what}_bias``: the mean of |ratio - 1| and of ratio - 1 over the
-    rows' ``{what}_ratio`` (None where a row has none)."""
-    ratios = np.array([r.get(f"{what}_ratio", np.nan) for r in rows]) - 1
-    known = not np.isnan(ratios).any()
-    return {f"{what}_off": float(np.abs(ratios).mean()) if known else None,
-            f"{what}_bias": float(ratios.mean()) if known else None}
+def _off_and_bias(rows: list[dict], what: str, read: str = "ratio", right: float = 1.0
+                  ) -> dict:
+    """``{what}_off`` and ``{what}_bias``: the mean of |x - right| and of x - right over the
+    rows' ``{what}_{read}`` (a ratio, right at 1, by default; None where a row has none)."""
+    errors = np.array([r.get(f"{what}_{read}", np.nan) for r in rows]) - right
+    known = not np.isnan(errors).any()
+    return {f"{what}_off": float(np.abs(errors).mean()) if known else None,
+            f"{what}_bias": float(errors.mean()) if known else None}

@@ -319,6 +319,47 @@ def test_depth_ratio_reads_placement_along_the_camera_rays(body):
     assert sized["depth_off"] is None and older["size_off"] is None
 
 
+def test_scene_height_error_reads_the_registered_floor_under_the_body(body):
+    """Under a tilted, rolled, off-centre camera whose axes are not the world's: a
+    registration that reads every point 1 cm lower than the truth (the scene 1 cm too high)
+    gives +1 cm under the body; one turned about a vertical axis through the body (heights
+    kept) gives 0, which a column read for the world's up row would not; frames aggregate
+    to the mean |error| and its signed mean, rows written before it was give neither."""
+    from benchmarks.evaluate import aggregate, scene_height_error
+    from prox_engine.synthetic import look_at
+
+    with torch.no_grad():
+        world = body(body.init_params(1)).vertices[0].double().numpy()
+    world[:, 2] -= world[:, 2].min()  # standing on the floor
+    true = look_at(np.array([1.3, -2.7, 1.6]), np.array([0.3, 0.2, 0.8]))
+    roll = np.radians(25)
+    true[:3, :3] = true[:3, :3] @ np.array(
+        [[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
+    seen = (world - true[:3, 3]) @ true[:3, :3]  # camera frame
+
+    lower = np.eye(4)
+    lower[2, 3] = -0.01
+    assert scene_height_error(seen, lower @ true, true) == pytest.approx(0.01, abs=1e-9)
+    turn = np.eye(4)
+    angle = np.radians(20)
+    turn[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    centre = world.mean(0)
+    turn[:3, 3] = centre - turn[:3, :3] @ centre
+    assert abs(scene_height_error(seen, turn @ true, true)) < 1e-9
+    column_read = seen @ (turn @ true)[:3, 2] - seen @ true[:3, 2]
+    assert np.abs(column_read).max() > 0.05  # the mix-up this guards against
+
+    keys = ("pje", "v2v", "p_pje", "p_v2v", "penetrating_share", "penetration_mean_depth_m",
+            "penetrating_share_as_given", "seconds", "gt_contacts", "contacts_recovered",
+            "sides_right")
+    row = dict.fromkeys(keys, 1.0)
+    read = aggregate([{**row, "scene_height_error_m": 0.015},
+                      {**row, "scene_height_error_m": -0.005}])
+    assert read["scene_height_off"] == pytest.approx(0.01)
+    assert read["scene_height_bias"] == pytest.approx(0.005)
+    assert aggregate([row, {**row, "scene_height_error_m": 0.01}])["scene_height_off"] is None
+
+
 def test_frames_are_told_apart_by_what_the_detector_did():
     """The worst thing the detector did names a frame's condition: cut off below the knees
     before blurred, blurred before swapped sides; nothing is clean."""
