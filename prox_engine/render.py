@@ -120,12 +120,16 @@ class View:
 
 
 def camera_view(camera: Camera, cam2world: np.ndarray, width: int, height: int) -> View:
-    """The recording camera, scaled to the output size (centred when the aspect differs)."""
+    """The recording camera, scaled to the output size (centred when the aspect differs).
+    Its principal point is given from the image's edge, as OpenGL rasterizes (a pixel's
+    centre half a pixel in), where OpenCV's intrinsics put pixel centres at whole
+    coordinates: drawn at (cx, cy), a rendered depth frame was read half a pixel off."""
     image_w = camera.width or 2 * camera.cx
     image_h = camera.height or 2 * camera.cy
     s = min(width / image_w, height / image_h)
-    return View(camera.fx * s, camera.fy * s, camera.cx * s + (width - image_w * s) / 2,
-                camera.cy * s + (height - image_h * s) / 2, np.asarray(cam2world, dtype=float))
+    return View(camera.fx * s, camera.fy * s, (camera.cx + 0.5) * s + (width - image_w * s) / 2,
+                (camera.cy + 0.5) * s + (height - image_h * s) / 2,
+                np.asarray(cam2world, dtype=float))
 
 
 def _looking(centre: np.ndarray, forward: np.ndarray, right: np.ndarray, distance: float
