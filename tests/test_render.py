@@ -65,43 +65,41 @@ def test_camera_view_shows_the_body_where_it_projects(room):
     assert 40 < image.mean() < 250 and image.std() > 10
 
 
+def _plane_depth(corners: np.ndarray, camera: Camera, cam2world: np.ndarray) -> np.ndarray:
+    """The camera view's depth (at the camera's own size) of a plane with camera-frame
+    ``corners`` (4, 3), drawn from the world frame ``cam2world`` puts it in."""
+    world = corners @ cam2world[:3, :3].T + cam2world[:3, 3]
+    renderer = SceneRenderer(world, np.array([[0, 2, 1], [0, 3, 2]]), None, camera, cam2world,
+                             np.stack([world.min(0), world.max(0)]), camera.width,
+                             camera.height)
+    try:
+        return renderer.depth("camera", [])[0]
+    finally:
+        renderer.close()
+
+
 def test_camera_view_draws_each_pixel_as_opencv_centres_it():
     """A pixel (u, v) of the camera view shows the ray through (u, v) as OpenCV (and the
     depth frames' back-projection) read it: pixel centres at whole coordinates, not at
     +0.5 as OpenGL's rasterizer puts them. A plane's straight edge, seen by a tilted,
     rolled, off-centre camera whose axes are not the world's and drawn at the camera's own
-    size, is placed a quarter of a pixel from two pixel centres at two places; each side of
-    it must fall where the OpenCV projection puts it (the +0.5 convention puts one a pixel
-    off)."""
+    size, lies a quarter of a pixel from two pixel centres, once across the columns and
+    once across the rows; each side of it must fall where the OpenCV projection puts it
+    (the +0.5 convention puts the first covered pixel one off)."""
     camera = Camera(400.0, 410.0, 171.25, 118.6, width=320, height=240)
     cam2world = look_at(np.array([1.1, -2.3, 1.7]), np.array([0.2, 0.4, 0.9]))
     roll = np.radians(17)
     cam2world[:3, :3] = cam2world[:3, :3] @ np.array(
         [[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
-    # camera-frame corners of a plane at z = 2 covering x >= x0 (the edge through u = 150.25)
+    # planes at z = 2 covering x >= x0 (the edge through u = 150.25), then y >= y0 (v = 100.75)
     x0 = (150.25 - camera.cx) / camera.fx * 2.0
-    corners = np.array([[x0, -5, 2.0], [x0 + 5, -5, 2], [x0 + 5, 5, 2], [x0, 5, 2]])
-    world = corners @ cam2world[:3, :3].T + cam2world[:3, 3]
-    faces = np.array([[0, 2, 1], [0, 3, 2]])  # facing the camera
-    renderer = SceneRenderer(world, faces, None, camera, cam2world,
-                             np.stack([world.min(0), world.max(0)]), 320, 240)
-    try:
-        depth, _ = renderer.depth("camera", [])
-    finally:
-        renderer.close()
-    covered = np.nonzero(depth[120] > 0)[0]
-    assert covered.min() == 151  # centre 151 is right of the edge, 150 left of it
-    # ... and rows the same: the edge of a plane covering y >= y0 through v = 100.75
     y0 = (100.75 - camera.cy) / camera.fy * 2.0
-    corners = np.array([[-5, y0, 2.0], [5, y0, 2], [5, y0 + 5, 2], [-5, y0 + 5, 2]])
-    world = corners @ cam2world[:3, :3].T + cam2world[:3, 3]
-    renderer = SceneRenderer(world, faces, None, camera, cam2world,
-                             np.stack([world.min(0), world.max(0)]), 320, 240)
-    try:
-        depth, _ = renderer.depth("camera", [])
-    finally:
-        renderer.close()
-    assert np.nonzero(depth[:, 160] > 0)[0].min() == 101
+    columns = _plane_depth(np.array([[x0, -5, 2.0], [x0 + 5, -5, 2], [x0 + 5, 5, 2],
+                                     [x0, 5, 2]]), camera, cam2world)
+    rows = _plane_depth(np.array([[-5, y0, 2.0], [5, y0, 2], [5, y0 + 5, 2], [-5, y0 + 5, 2]]),
+                        camera, cam2world)
+    assert np.nonzero(columns[120] > 0)[0].min() == 151  # centre 151 right of the edge
+    assert np.nonzero(rows[:, 160] > 0)[0].min() == 101
 
 
 def test_top_and_side_views_see_through_the_ceiling_and_walls(room):
