@@ -68,7 +68,10 @@ def load_depth_points(depth_path: Path, mask_path: Path, camera: Camera, flip: b
     height, width = depth.shape
     sx = width / (camera.width or COLOR_SIZE[0])
     sy = height / (camera.height or COLOR_SIZE[1])
-    scaled = Camera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy)
+    # OpenCV centres pixel u at u: a depth pixel's centre is (u + 0.5) / s - 0.5 in the
+    # colour image, so the principal point scales as (c + 0.5) s - 0.5, not c s
+    scaled = Camera(camera.fx * sx, camera.fy * sy, (camera.cx + 0.5) * sx - 0.5,
+                    (camera.cy + 0.5) * sy - 0.5)
     return scaled.backproject(torch.tensor(u, dtype=torch.float32),
                               torch.tensor(v, dtype=torch.float32),
                               torch.tensor(z, dtype=torch.float32))

@@ -34,6 +34,28 @@ def test_depth_points_are_back_projected_mask_pixels(tmp_path):
     assert few.shape == (10, 3)
 
 
+def test_depth_registered_at_another_size_reads_each_pixel_at_its_centre(tmp_path):
+    """A depth frame registered to the colour camera at a third of its size (as Kinect
+    tools write it): a depth pixel covers colour pixels, its centre at ``(u + 0.5) / s -
+    0.5`` in the colour camera's OpenCV coordinates. Pixels of a plane tilted to the
+    camera, written so, are read back onto the plane; read as ``u / s``, each is off its
+    ray by a pixel of the colour camera, and the points off the plane by millimetres."""
+    camera = Camera(fx=300.0, fy=310.0, cx=97.3, cy=61.8, width=192, height=108)
+    s = 1 / 3
+    height, width = 36, 64
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    x = ((u + 0.5) / s - 0.5 - camera.cx) / camera.fx  # the ray of each depth pixel's centre
+    y = ((v + 0.5) / s - 0.5 - camera.cy) / camera.fy
+    normal, offset = np.array([0.6, 0.5, 1.0]), 2.0  # the plane n . p = offset
+    z = offset / (normal[0] * x + normal[1] * y + normal[2])
+    Image.fromarray(np.round(z * 8000).astype(np.uint16)).save(tmp_path / "d.png")
+    Image.fromarray(np.zeros((height, width), dtype=np.uint8)).save(tmp_path / "m.png")
+    points = load_depth_points(tmp_path / "d.png", tmp_path / "m.png", camera, flip=False,
+                               max_points=10000).double().numpy()
+    off = np.abs(points @ normal - offset) / np.linalg.norm(normal)
+    assert off.max() < 1e-3  # the PNG's 1/8 mm steps and float32
+
+
 def test_depth_mask_size_mismatch(tmp_path):
     depth, _ = _frames(tmp_path)
     Image.fromarray(np.zeros((5, 5), dtype=np.uint8)).save(tmp_path / "small.png")
