@@ -123,6 +123,8 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
     summary = json.loads((Path(fitted) / recording / "summary.json").read_text())
     truth = truth_meta(data, recording)
     registered = summary.get("registration", {}).get("cam2world")  # not in older fits
+    registered = None if registered is None else np.asarray(registered)
+    true_cam2world = np.asarray(truth["cam2world"])
     rows = []
     for frame in summary["frames"]:
         name = frame["frame"]
@@ -138,8 +140,8 @@ def evaluate_recording(data: Path, recording: str, fitted: Path, body: BodyModel
                      "condition": condition(errors),
                      **({"size_ratio": frame["stature_m"] / truth["stature_m"]}
                         if "stature_m" in frame else {}),  # not in fits made before it was
-                     **({"scene_height_error_m": scene_height_error(
-                         gt, np.asarray(registered), np.asarray(truth["cam2world"]))}
+                     **({"scene_height_error_m": scene_height_error(gt, registered,
+                                                                    true_cam2world)}
                         if registered is not None else {}),
                      # the fit's own statistic: inside the scan as the fitter read it
                      "penetrating_share_as_given": frame["penetrating_share"],
