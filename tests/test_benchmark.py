@@ -487,3 +487,48 @@ def test_an_ideal_kinects_frames_read_back_onto_the_room(tmp_path, monkeypatch):
     assert floor.sum() > 2000 and wall.sum() > 2000
     assert abs(float(np.median(world[floor, 2]))) < 0.001
     assert abs(float(np.median(world[wall, 1])) - 2.0) < 0.001
+
+
+def test_the_calibration_reading_finds_ir_jsons_error_where_the_person_is(sitting_data,
+                                                                         tmp_path, body,
+                                                                         monkeypatch):
+    """Kinect frames of the sitting recording's true bodies, its IR.json written 0.3
+    degrees and 3 mm off: aligned to the true bodies, the pooled turn moves the person's
+    centre as the error does, to a millimetre across the rays (the shift included, which
+    no turn written alone reproduces); with the exact IR.json it reads no turn."""
+    import shutil
+
+    from benchmarks import kinect
+    from benchmarks.calibration_reading import correction, recording_turns
+    from scipy.spatial.transform import Rotation
+
+    from .conftest import REC
+
+    base = tmp_path / "data"
+    shutil.copytree(sitting_data, base)
+    true = np.asarray(json.loads((base / "cam2world" / "Synthetic.json").read_text()))
+    truth = sorted((base / "ground_truth" / REC).glob("*.npz"))
+    bodies = [np.load(p)["vertices"] for p in truth]
+    monkeypatch.setattr(kinect, "CALIBRATION_ERROR", ((0.003, 0.003), (0.3, 0.3)))
+    kinect.write_calibration(base, np.random.default_rng(5))
+    kinect.write_depth(base, REC, [(p.stem, v @ true[:3, :3].T + true[:3, 3])
+                                   for p, v in zip(truth, bodies)],
+                       body.faces.numpy(), trimesh.load(base / "scenes" / "Synthetic.ply",
+                                                        process=False), true,
+                       np.random.default_rng(1))
+    centre = np.concatenate(bodies).mean(0)
+    exact = correction(base)
+    wanted = exact[:3, :3] @ centre + exact[:3, 3] - centre
+    turn = np.median(recording_turns(base, REC, body), 0)
+    moved = Rotation.from_rotvec([*turn, 0.0]).as_matrix() @ centre - centre
+    across = np.eye(3) - np.outer(centre, centre) / centre @ centre  # off the ray
+    assert np.linalg.norm(across @ wanted) > 0.005  # the error is there to be read
+    assert np.linalg.norm(across @ (moved - wanted)) < 0.001
+    written_turn = Rotation.from_matrix(exact[:3, :3]).as_rotvec()
+    alone = Rotation.from_rotvec(written_turn).as_matrix() @ centre - centre
+    assert np.linalg.norm(across @ (alone - wanted)) > 0.001  # the shift counts
+
+    ir = json.loads((base / "calibration" / "IR.json").read_text())
+    ir["view_mtx"] = kinect.COLOUR_TO_DEPTH[:3].tolist()
+    (base / "calibration" / "IR.json").write_text(json.dumps(ir))
+    assert np.abs(np.median(recording_turns(base, REC, body), 0)).max() < 3e-4
