@@ -12,7 +12,6 @@ own errors add to it (docs/benchmark.md). A probe of the benchmark, not part of 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -70,12 +69,12 @@ def read_turn(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
 
 
 def correction(base: Path) -> np.ndarray:
-    """The rigid transform (4, 4) that takes points read through ``base``'s ``IR.json`` to
-    where the true colour-to-depth pose (``kinect.COLOUR_TO_DEPTH``) puts them."""
-    written = np.eye(4)
-    written[:3] = np.asarray(json.loads(
-        (Path(base) / "calibration" / "IR.json").read_text())["view_mtx"])
-    return np.linalg.inv(kinect.COLOUR_TO_DEPTH) @ written
+    """The rigid transform (4, 4) that takes points read through ``base``'s ``IR.json`` (as
+    the fitter reads it) to where the true colour-to-depth pose
+    (``kinect.COLOUR_TO_DEPTH``) puts them."""
+    calibration = Path(base) / "calibration"
+    read = load_depth_camera(calibration / "IR.json", calibration / "Color.json").to_colour
+    return np.linalg.inv(kinect.COLOUR_TO_DEPTH) @ np.linalg.inv(read)
 
 
 def recording_turns(base: Path, recording: str, body: AnnyBody, fits: Path | None = None,

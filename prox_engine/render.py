@@ -110,7 +110,9 @@ class BodyMesh:
 
 @dataclass
 class View:
-    """A pinhole camera: intrinsics in output pixels and an OpenCV camera-to-world pose."""
+    """A pinhole camera: intrinsics in output pixels, the principal point measured from the
+    image's edge as OpenGL rasterizes (pixel centres at +0.5; see :func:`camera_view`), and
+    an OpenCV camera-to-world pose."""
 
     fx: float
     fy: float
