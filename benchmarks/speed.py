@@ -9,7 +9,9 @@ are fitted in turn, recording by recording, and with ``--rounds`` each recording
 times, its seconds the median (batches' throughput against single frames is also given
 round by round). In sequence mode also the seconds of the frames fitted from their
 neighbour alone: what a long recording costs per frame, once its anchor frame's full fit is
-spread over many frames.
+spread over many frames. With several batch sizes (``--batch 2 4 8``), batches' throughput
+against N, and the two costs it splits into: per frame and per batch (see
+:func:`batch_costs`).
 
     .venv/bin/python -m benchmarks.speed --seed 1 --frames 8 --kinds sit walk --batch 8
 """
@@ -20,8 +22,10 @@ import dataclasses
 import json
 import statistics
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from prox_engine.body.anny_body import AnnyBody
@@ -53,7 +57,7 @@ def body_seconds(body: AnnyBody, free_shape: bool, repeats: int = 30) -> float:
 
 
 def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
-        batch: int, sdf_dim: int = 256, rounds: int = 1, log=print) -> dict:
+        batch: int | Sequence[int], sdf_dim: int = 256, rounds: int = 1, log=print) -> dict:
     """Fit every recording in every configuration and mode, ``rounds`` times, the modes in
     turn recording by recording (a batch is then timed seconds after the single frames it
     is compared with, not minutes); returns the figures per (configuration, mode), each
@@ -75,7 +79,9 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     for rec in recordings:  # the fitter's SDFs, cached on disk before anything is timed
         load_scene(Recording(data, rec), sdf_dim)
     unit_before = measure_unit()  # right before the first fit
-    modes = {"single": (1, False), "sequence": (1, True), f"batch {batch}": (batch, False)}
+    batches = [batch] if isinstance(batch, int) else list(batch)
+    modes = {"single": (1, False), "sequence": (1, True),
+             **{f"batch {size}": (size, False) for size in batches}}
     rows = {}
     for name in configs:
         timed: dict[str, list[list[dict]]] = {mode: [] for mode in modes}  # [recording][round]
@@ -133,9 +139,47 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         f"{unit['free_shape'] * 1000:.1f} ms free (medians of {len(units['free_shape'])}; "
         f"free {min(units['free_shape']) * 1000:.1f}-{max(units['free_shape']) * 1000:.1f})")
     return {"unit_seconds": unit, "unit_samples": units, "rows": rows,
-            "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": batch,
+            "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": batches,
                          "sdf_dim": sdf_dim, "rounds": rounds,
                          "threads": torch.get_num_threads()}}
+
+
+def batch_costs(seconds: dict[int, float]) -> tuple[float, float]:
+    """The seconds a frame of batches of N frames takes (``seconds``: N -> s a frame; 1:
+    single frames) split by least squares into what every frame costs and what a batch
+    costs whatever its size, s(N) = per_frame + per_batch / N: each evaluation's work on
+    a frame's rows against the Python, kernel launches and small operations it costs once
+    for all rows. Single frames' throughput times (per_frame + per_batch) / per_frame is
+    then what no batch size can beat."""
+    sizes = np.array(sorted(seconds), dtype=float)
+    design = np.stack([np.ones_like(sizes), 1.0 / sizes], 1)
+    (per_frame, per_batch), *_ = np.linalg.lstsq(
+        design, np.array([seconds[int(n)] for n in sizes]), rcond=None)
+    return float(per_frame), float(per_batch)
+
+
+def _by_batch_size(rows: dict) -> str:
+    """Per configuration fitted in two or more batch sizes: seconds a frame and
+    throughput against single frames by batch size, and :func:`batch_costs`."""
+    text = ""
+    for name in dict.fromkeys(name for name, _ in rows):
+        sizes = {int(mode.split()[1]): r["fit_seconds_per_frame"]
+                 for (n, mode), r in rows.items() if n == name and mode.startswith("batch")}
+        if len(sizes) < 2 or (name, "single") not in rows:
+            continue
+        single = rows[(name, "single")]["fit_seconds_per_frame"]
+        sizes[1] = single
+        per_frame, per_batch = batch_costs(sizes)
+        text += (f"\n{name}, by batch size (s a frame, fit; throughput against single "
+                 "frames; s(N) = per frame + per batch / N fitted to these):\n\n"
+                 "| N | s/frame | x single | model |\n|---|---|---|---|\n")
+        for size in sorted(sizes):
+            text += (f"| {size} | {sizes[size]:.3f} | {single / sizes[size]:.2f} | "
+                     f"{per_frame + per_batch / size:.3f} |\n")
+        text += (f"\n{per_frame:.3f} s a frame and {per_batch:.3f} s a batch: no batch size "
+                 f"beats {(per_frame + per_batch) / per_frame:.2f}x single frames' "
+                 "throughput.\n")
+    return text
 
 
 def _fitted(out: Path, config: str, mode: str) -> Path:
@@ -179,7 +223,7 @@ def markdown(result: dict) -> str:
             text += (f"\n{name}, {mode}: {statistics.median(rounds):.2f}x single frames' "
                      f"throughput (median of {len(rounds)} rounds: "
                      f"{', '.join(f'{x:.2f}' for x in rounds)}).\n")
-    return text
+    return text + _by_batch_size(result["rows"])
 
 
 def _per_kind(rows: dict) -> str:
@@ -215,7 +259,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--frames", type=int, default=8)
     parser.add_argument("--kinds", nargs="+", default=["sit", "walk"], choices=KINDS)
     parser.add_argument("--configs", nargs="+", default=["rgb", "prox"])
-    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--batch", type=int, nargs="+", default=[8],
+                        help="batch sizes, each a mode of its own")
     parser.add_argument("--sdf-dim", type=int, default=256)
     parser.add_argument("--rounds", type=int, default=1,
                         help="fit each recording this many times in every mode, the modes "

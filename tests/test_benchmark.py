@@ -429,7 +429,7 @@ def test_speed_benchmark_fits_the_modes_in_turn_round_by_round(tmp_path, body):
 
     from benchmarks.speed import markdown, run
 
-    result = run(tmp_path, seed=5, frames=2, kinds=["sit"], configs=["rgb"], batch=2,
+    result = run(tmp_path, seed=5, frames=2, kinds=["sit"], configs=["rgb"], batch=[2],
                  sdf_dim=64, rounds=2, log=lambda _: None)
     assert len(result["unit_samples"]["free_shape"]) == 1 + 3 * 2
     seconds = {folder: json.loads(next((tmp_path / "fits" / "rgb" / folder).glob(
@@ -445,6 +445,35 @@ def test_speed_benchmark_fits_the_modes_in_turn_round_by_round(tmp_path, body):
     gap = rows[("rgb", "batch 2")]["pje_mm"] - rows[("rgb", "single")]["pje_mm"]
     assert f"rgb, batch 2: at most {gap:+.1f} mm on a kind against single frames (sit)" in (
         markdown(result))
+
+
+def test_batches_split_into_a_frames_cost_and_a_batchs():
+    """`benchmarks.speed` splits the seconds a frame of batches of N frames into what
+    every frame costs and what a batch costs once (s(N) = a + b / N), and says what no
+    batch size can beat: (a + b) / a times single frames' throughput."""
+    from benchmarks.speed import batch_costs, markdown
+
+    seconds = {n: 0.2 + 0.3 / n for n in (1, 2, 4, 8)}
+    assert batch_costs(seconds) == pytest.approx((0.2, 0.3))
+    assert batch_costs({1: 0.5, 8: 0.5}) == pytest.approx((0.5, 0.0), abs=1e-12)
+
+    def row(s: float) -> dict:
+        return {"fit_seconds_per_frame": s, "wall_seconds_per_frame": s,
+                "body_evaluations_per_frame": 100.0, "ratio": 10.0,
+                "warm_started_seconds_per_frame": None, "pje_mm": 50.0,
+                "pje_mm_per_kind": {"sit": 50.0}}
+
+    result = {"unit_seconds": {"frozen_shape": 0.002, "free_shape": 0.007},
+              "unit_samples": {"free_shape": [0.007]},
+              "settings": {"seed": 1, "frames": 8, "kinds": ["sit"], "threads": 1,
+                           "rounds": 1},
+              "rows": {("prox", "single"): row(0.52), ("prox", "batch 2"): row(0.36),
+                       ("prox", "batch 8"): row(0.24)}}
+    text = markdown(result)
+    assert "| 8 | 0.240 | 2.17 | 0.240 |" in text
+    assert "0.200 s a frame and 0.320 s a batch: no batch size beats 2.60x" in text
+    del result["rows"][("prox", "batch 2")]
+    assert "by batch size" not in markdown(result)
 
 
 def test_an_ideal_kinects_frames_read_back_onto_the_room(tmp_path, monkeypatch):
