@@ -217,6 +217,10 @@ class FitConfig:
     # ... ranked with these contact parts counted as missing for every posture: hidden
     # legs are no evidence of what they touch (Fitter._hidden_leg_postures)
     hidden_leg_uncounted: list[str] = field(default_factory=list)
+    # ... also where the fitted knees lie outside the image (cut off by its edge, the legs
+    # are as unknown as behind furniture: whatever the start guessed, the keypoint stages
+    # keep).
+    hidden_legs_cut_off: bool = False
     # A frame fitted from scratch whose fit floats over every surface (quality.FLOATING)
     # is fitted again from its other start, which is kept if it floats less and fits the
     # keypoints clearly better (pipeline.RESTART_DATA); not where no ankle is seen, whose

@@ -667,7 +667,8 @@ class Fitter:
     def _hidden_leg_postures(self, rows: _Rows, stage: Stage) -> _Rows:
         """``rows`` (one per frame), each frame whose detector reports no knee or ankle at HIDDEN
         or more and whose fitted knees lie in the image (legs behind furniture, or cut off by
-        the image's edge where the fit brings the knees inside it) replaced by the best of its
+        the image's edge where the fit brings the knees inside it; with
+        ``hidden_legs_cut_off``, wherever they lie) replaced by the best of its
         fit and copies with the legs posed as each start posture's
         (:meth:`BodyModel.leg_postures`), ranked as the starts are: the ``stage``'s data term
         plus how badly each can meet the scene at its best scale (with the size prior there; the
@@ -691,7 +692,8 @@ class Fitter:
             return rows
         with torch.no_grad():
             joints = self.body(rows.params, vertices=False).keypoints
-        legs &= self.camera.in_image(self.camera.project(joints[:, KNEES])).all(1)
+        if not self.config.hidden_legs_cut_off:
+            legs &= self.camera.in_image(self.camera.project(joints[:, KNEES])).all(1)
         shins &= self.camera.in_image(self.camera.project(joints[:, ANKLES])).all(1)
         hidden = legs | shins
         postures = self.body.leg_postures(rows.params, thighs_kept=shins)

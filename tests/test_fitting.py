@@ -1188,18 +1188,18 @@ def _kneeler_fitted_standing(body, cam2world: np.ndarray
 
 def _hidden_legs_picked(body, cam2world: np.ndarray, config_name: str,
                         params: dict[str, torch.Tensor], truth: torch.Tensor,
-                        conf: torch.Tensor, refitted: bool = False
-                        ) -> tuple[torch.Tensor, list[str]]:
+                        conf: torch.Tensor, refitted: bool = False,
+                        camera: Camera = CAMERA) -> tuple[torch.Tensor, list[str]]:
     """The body joints (25, 3) that :meth:`Fitter._hidden_leg_postures` keeps for a fit
     ``params`` (with ``refitted``, first fitted through the last keypoint stage) of the
-    keypoints ``truth`` projected, reported with ``conf`` (1, K), over a floor; and the
-    events."""
+    keypoints ``truth`` projected by ``camera``, reported with ``conf`` (1, K), over a
+    floor; and the events."""
     from prox_engine.fitting import _Rows
 
     config = load_config(config_name)
-    fitter = Fitter(body, CAMERA, config, floor_scene(cam2world))
+    fitter = Fitter(body, camera, config, floor_scene(cam2world))
     fitter.events = []
-    rows = _Rows({k: v.clone() for k, v in params.items()}, CAMERA.project(truth)[None],
+    rows = _Rows({k: v.clone() for k, v in params.items()}, camera.project(truth)[None],
                  conf, conf[:, :25].clone(), [None], [()])
     if refitted:
         fitter._refit_candidates(rows, config.stages[3], torch.tensor([0]))
@@ -1242,6 +1242,37 @@ def test_hidden_legs_are_tried_in_each_start_posture_and_the_scene_picks_kneelin
     conf[:, KNEES + FEET] = 0.0
     _posed_kneeling_or_kept(body, cam2world, standing, truth, conf, "legs", KNEES[0],
                             "prox-no-hidden-legs")
+
+
+def test_hidden_legs_cut_off_by_the_images_edge_are_tried_in_each_posture_too(body):
+    """A body standing on the floor under a tilted, rolled, off-centre camera whose image
+    ends above its knees (a tenth of the benchmark's recordings are framed so), fitted
+    with its legs kneeling (the start's guess): the fitted knees lie outside the image,
+    and the legs are as unknown as behind furniture. In `prox` they are tried in each
+    start posture there too, and standing wins, every joint within 3 cm of the truth's;
+    with the knees required in the image (`prox-hidden-legs-in-view`), the kneeling
+    legs are kept, metres off."""
+    from prox_engine.keypoints import ANKLES, FEET, KNEES
+
+    cam2world = tilted_camera()
+    standing = _posed_params(body, cam2world, "standing")
+    kneeling = body.leg_postures(standing)["kneeling"]
+    with torch.no_grad():
+        truth = body(standing, vertices=False).keypoints[0]
+        fitted = body(kneeling, vertices=False).keypoints[0, :25]
+    cut = Camera(fx=CAMERA.fx, fy=CAMERA.fy, cx=CAMERA.cx, cy=CAMERA.cy, width=1920,
+                 height=600)
+    legs = KNEES + ANKLES + FEET
+    assert not bool(cut.in_image(cut.project(fitted[KNEES])).any())
+    assert bool(cut.in_image(cut.project(truth[[j for j in range(25) if j not in legs]])).all())
+    conf = torch.full((1, N_KEYPOINTS), 0.9)
+    conf[:, legs] = 0.0
+    for config_name, events, error in (("prox", ["hidden legs posed standing"], (0.0, 0.03)),
+                                       ("prox-hidden-legs-in-view", [], (0.5, 9.0))):
+        got, told = _hidden_legs_picked(body, cam2world, config_name, kneeling, truth, conf,
+                                        camera=cut)
+        assert told == events, config_name
+        assert error[0] < float((got - truth[:25]).norm(dim=1).max()) < error[1], config_name
 
 
 def test_hidden_legs_contact_parts_count_as_missing_for_every_posture(body):
