@@ -20,8 +20,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from prox_engine.body.anny_body import AnnyBody
-from prox_engine.camera import Camera
-from prox_engine.dataset import Recording, load_depth_camera
+from prox_engine.dataset import Recording, load_calibration, load_depth_camera
 from prox_engine.depth import load_depth_points
 
 from . import kinect
@@ -82,13 +81,14 @@ def recording_turns(base: Path, recording: str, body: AnnyBody, fits: Path | Non
     """Each frame's :func:`read_turn` (F, 2) of ``recording``, against its true bodies or,
     given ``fits`` (a ``prox fit`` output folder), the fitted ones."""
     rec = Recording(Path(base), recording)
+    camera = load_calibration(rec.calibration_path)
     depth_camera = load_depth_camera(rec.depth_calibration_path, rec.calibration_path)
     faces = body.faces.numpy()
     keep = None if parts is None else np.isin(np.asarray(body.vertex_parts), parts)
     turns = []
     for name in rec.frames():
-        points = load_depth_points(*rec.depth_paths(name), Camera(1.0, 1.0, 0.0, 0.0), False,
-                                   POINTS, depth_camera=depth_camera).double().numpy()
+        points = load_depth_points(*rec.depth_paths(name), camera, False, POINTS,
+                                   depth_camera=depth_camera).double().numpy()
         if fits is None:
             vertices = np.load(Path(base) / "ground_truth" / recording / f"{name}.npz"
                                )["vertices"]

@@ -57,7 +57,7 @@ def body_seconds(body: AnnyBody, free_shape: bool, repeats: int = 30) -> float:
 
 
 def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
-        batch: int | Sequence[int], sdf_dim: int = 256, rounds: int = 1, log=print) -> dict:
+        batches: Sequence[int], sdf_dim: int = 256, rounds: int = 1, log=print) -> dict:
     """Fit every recording in every configuration and mode, ``rounds`` times, the modes in
     turn recording by recording (a batch is then timed seconds after the single frames it
     is compared with, not minutes); returns the figures per (configuration, mode), each
@@ -79,7 +79,6 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
     for rec in recordings:  # the fitter's SDFs, cached on disk before anything is timed
         load_scene(Recording(data, rec), sdf_dim)
     unit_before = measure_unit()  # right before the first fit
-    batches = [batch] if isinstance(batch, int) else list(batch)
     modes = {"single": (1, False), "sequence": (1, True),
              **{f"batch {size}": (size, False) for size in batches}}
     rows = {}
@@ -139,7 +138,7 @@ def run(out: Path, seed: int, frames: int, kinds: list[str], configs: list[str],
         f"{unit['free_shape'] * 1000:.1f} ms free (medians of {len(units['free_shape'])}; "
         f"free {min(units['free_shape']) * 1000:.1f}-{max(units['free_shape']) * 1000:.1f})")
     return {"unit_seconds": unit, "unit_samples": units, "rows": rows,
-            "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": batches,
+            "settings": {"seed": seed, "frames": frames, "kinds": kinds, "batch": list(batches),
                          "sdf_dim": sdf_dim, "rounds": rounds,
                          "threads": torch.get_num_threads()}}
 

@@ -406,7 +406,7 @@ def test_speed_benchmark_divides_each_fit_by_the_unit_measured_around_it(tmp_pat
 
     from benchmarks.speed import run
 
-    result = run(tmp_path, seed=5, frames=1, kinds=["sit"], configs=["rgb"], batch=2,
+    result = run(tmp_path, seed=5, frames=1, kinds=["sit"], configs=["rgb"], batches=[2],
                  sdf_dim=64, log=lambda _: None)
     free = result["unit_samples"]["free_shape"]
     assert len(free) == 4 and len(result["unit_samples"]["frozen_shape"]) == 4
@@ -429,7 +429,7 @@ def test_speed_benchmark_fits_the_modes_in_turn_round_by_round(tmp_path, body):
 
     from benchmarks.speed import markdown, run
 
-    result = run(tmp_path, seed=5, frames=2, kinds=["sit"], configs=["rgb"], batch=[2],
+    result = run(tmp_path, seed=5, frames=2, kinds=["sit"], configs=["rgb"], batches=[2],
                  sdf_dim=64, rounds=2, log=lambda _: None)
     assert len(result["unit_samples"]["free_shape"]) == 1 + 3 * 2
     seconds = {folder: json.loads(next((tmp_path / "fits" / "rgb" / folder).glob(

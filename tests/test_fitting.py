@@ -1252,7 +1252,7 @@ def test_hidden_legs_cut_off_by_the_images_edge_are_tried_in_each_posture_too(bo
     start posture there too, and standing wins, every joint within 3 cm of the truth's;
     with the knees required in the image (`prox-hidden-legs-in-view`), the kneeling
     legs are kept, metres off."""
-    from prox_engine.keypoints import ANKLES, FEET, KNEES
+    from prox_engine.keypoints import KNEES
 
     cam2world = tilted_camera()
     standing = _posed_params(body, cam2world, "standing")
