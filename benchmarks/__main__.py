@@ -55,7 +55,7 @@ CONFIGS = ("rgb", "rgb+contact", "rgb+penetration", "prox-no-swaps", "prox-no-sc
            "prox-light-chain-size" + SEQUENCE,
            "prox-absolute-temporal" + SEQUENCE, "prox-temporal-contact-only" + SEQUENCE,
            "prox-chain-only" + SEQUENCE, "prox-first-seen-anchor" + SEQUENCE,
-           "prox-own-chain" + SEQUENCE,
+           "prox-own-chain" + SEQUENCE, "prox-path-motion-only" + SEQUENCE,
            "prox-feet-tolerant" + SEQUENCE,
            "smplifyd", "proxd")
 SMALL = {"kinds": ["sit"], "frames": 2, "configs": ["rgb", "prox"], "sdf_dim": 128}

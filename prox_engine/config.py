@@ -130,6 +130,9 @@ class FitConfig:
     # stayed wrong to the recording's end, its frames rescued one by one by their fits
     # from scratch (pipeline.fit_recording). Recordings of up to a window fit as without.
     sequence_chain_from_path: bool = False
+    # ... and, where over 0, the path leaves off a frame's fit whose keypoints' and
+    # posture's terms (pipeline.IMAGE_TERMS) are over this many times its other fit's.
+    sequence_path_worse: float = 0.0
     # ... and, where set, its anchor is the frame of the first window whose fit from
     # scratch moves least to the others' (summed; of the frames seen at least anchor_seen
     # times as well as the best of them), not the first well-seen frame labelled as

@@ -103,3 +103,53 @@ def test_the_chain_is_lent_the_first_fit_from_scratch_where_a_refit_replaced_it(
     ((_, kept),) = paths.add([(Frame("b", None), lent)], False)
     assert kept is lent and kept.seconds == pytest.approx(2.0)
     assert not paths.first and not paths.lent
+
+
+def _paths(worse: float, chain_objective: list[float], fresh_objective: list[float],
+           chain_penetration: float = 900.0):
+    """Which fit (warm-started: True) sequence mode's path (pipeline._Paths, with
+    ``sequence_path_worse`` = ``worse``) keeps of each frame of a window, and the fit: the
+    chain's fits one body moving together (0.40 m on), the frames' fits from scratch
+    scattered (0.0 and 0.3 m), with the keypoints' and posture's costs given, the scene's
+    penetration 900 (the chain's ``chain_penetration``), the warm fits' temporal term 50."""
+    from prox_engine.fitting import FitResult, Frame
+    from prox_engine.pipeline import _Paths
+
+    def fit(name: str, x: float, objective: float, warm: bool) -> FitResult:
+        losses = {"data": objective - 10.0, "pose_prior": 10.0,
+                  "penetration": chain_penetration if warm else 900.0,
+                  **({"temporal": 50.0} if warm else {})}
+        return FitResult(name, {}, at(x)[0], torch.zeros(118, 3), losses, 0.25,
+                         {"final": 0.25}, {"final": 40.0})
+
+    paths = _Paths(None, window=len(chain_objective), worse=worse)  # nothing fitted here
+    names = [f"f{i}" for i in range(len(chain_objective))]
+    paths.ahead = {name: fit(name, 0.3 * (i % 2), objective, False)
+                   for i, (name, objective) in enumerate(zip(names, fresh_objective))}
+    kept = paths.add([(Frame(name, None), fit(name, 0.40 + 0.01 * i, objective, True))
+                      for i, (name, objective) in enumerate(zip(names, chain_objective))],
+                     fresh=False)
+    return [("temporal" in fit.losses, fit) for _, fit in kept]
+
+
+def test_the_path_leaves_off_a_fit_far_worse_at_the_keypoints_and_posture_than_its_other():
+    """A chain that carried a wrong posture on moves least, and the path kept it; its fit
+    of the second frame, at 10 times the keypoints' and posture's cost of the frame's fit
+    from scratch, is left off, its cost charged to the fit kept. Under 3 times, with the
+    rule off (`prox-path-motion-only`), or 10 times as deep in the scene, the chain stands;
+    a fit from scratch far worse than the chain's is left off alike."""
+    kept = _paths(3.0, [400.0, 4000.0, 400.0], [300.0, 400.0, 300.0])
+    assert [warm for warm, _ in kept] == [True, False, True]
+    second = kept[1][1]
+    assert any("warm-started fit left off the path" in e and "4000" in e
+               for e in second.events), second.events
+    assert second.stage_seconds["warm_fit"] == 0.25 and second.seconds == 0.5
+    assert second.stage_evaluations["warm_fit"] == 40.0
+    for worse, chain in ((3.0, [400.0, 1100.0, 400.0]), (0.0, [400.0, 4000.0, 400.0])):
+        assert [warm for warm, _ in _paths(worse, chain, [300.0, 400.0, 300.0])] == [True] * 3
+    kept = _paths(3.0, [400.0, 400.0, 400.0], [300.0, 400.0, 300.0], chain_penetration=9000.0)
+    assert all(warm and not fit.events for warm, fit in kept)
+    kept = _paths(3.0, [400.0, 400.0, 400.0], [300.0, 1300.0, 300.0])
+    assert all(warm for warm, _ in kept)
+    assert any("fit from scratch left off" in e for e in kept[1][1].events)
+    assert kept[1][1].stage_seconds["fresh_fit"] == 0.25
