@@ -26,8 +26,8 @@ from .initialisation import best_start
 from .keypoint_objective import KeypointObjective, goal_distance
 from .rescale import rescaled
 from .scale_search import (STANDING_PARTS, best_scale, carrying_vertices, feet_carried,
-                           kneelers_toes, lying, size_prior, standing_counts, standing_legs,
-                           toe_vertices, unseen_feet_on_kneeling_legs)
+                           kneelers_toes, lying, normal_vertices, size_prior, standing_counts,
+                           standing_legs, toe_vertices, unseen_feet_on_kneeling_legs)
 from .scene import Scene
 from .with_gradient import with_gradient
 
@@ -201,11 +201,13 @@ class Fitter:
         # (2, toes) right, then left
         self.toe_subset: VertexSubset | None = None
         self.toe_sides: torch.Tensor | None = None
-        # The whole mesh's normals, for the scale search (a kernel: 1.2 ms for two bodies
-        # where geometry.vertex_normals took 3.1); a fit without a scene never reads them
+        # The normals the scale search reads (scale_search.normal_vertices; a kernel: 1.2 ms
+        # for two whole bodies where geometry.vertex_normals took 3.1); a fit without a
+        # scene never reads them
         self.vertex_normals: VertexNormals | None = None
         if needs_scene:
-            self.vertex_normals = VertexNormals(body.faces, torch.arange(body.num_vertices))
+            self.vertex_normals = VertexNormals(
+                body.faces, normal_vertices(body.scene_vertices, self.contact_part_ids))
             with torch.no_grad():  # the standing mean body, which both sets are chosen on
                 rest = body(body.init_params(1))
             sides = toe_vertices(body.vertex_parts, rest.vertices[0],
@@ -1043,7 +1045,8 @@ class Fitter:
         with torch.no_grad():
             out = body(params)
             vertices = out.vertices
-            normals = self.vertex_normals(vertices)
+            normals = vertices.new_zeros(vertices.shape)
+            normals[:, self.vertex_normals.ids] = self.vertex_normals(vertices)
         joints = out.keypoints[:, BODY]
         up = self.scene.up_in_camera()
         seen, faint = detected > SEEN, self._faint_legs(detected, joints)

@@ -207,6 +207,19 @@ def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> tor
 
 
 @torch.no_grad()
+def sampled_vertices(scene_vertices: torch.Tensor) -> torch.Tensor:
+    """The vertices (indices) that :func:`best_scale` judges penetration and support on:
+    every STRIDE-th of the ``scene_vertices`` ((V,) bool)."""
+    return torch.nonzero(scene_vertices).flatten()[::STRIDE]
+
+
+def normal_vertices(scene_vertices: torch.Tensor, contact_parts: list[torch.Tensor]
+                    ) -> torch.Tensor:
+    """The vertices (sorted indices) whose normals :func:`best_scale` reads: the
+    :func:`sampled_vertices` and the ``contact_parts``' (two fifths of anny's mesh)."""
+    return torch.unique(torch.cat([sampled_vertices(scene_vertices), *contact_parts]))
+
+
 def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
                carrying: torch.Tensor, contact_parts: list[torch.Tensor], scene: Scene,
                use_contact: bool, use_penetration: bool, rho: float, max_angle_deg: float,
@@ -228,7 +241,8 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     those it reported faintly) in front of it, plus a weak prior on body size. The ``toes``
     ((V,) bool, :func:`toe_vertices`) do not count as penetrating; the ``axes`` ((B, S,
     3), points inside the body: its collision spheres' centres) do (AXIS_WEIGHT).
-    ``vertices`` and ``normals`` (B, V, 3) in camera coordinates, ``scene_vertices`` (V,) bool,
+    ``vertices`` and ``normals`` (B, V, 3) in camera coordinates (the normals read only at
+    :func:`normal_vertices`), ``scene_vertices`` (V,) bool,
     ``carrying`` (V,) bool (:func:`carrying_vertices`), ``contact_parts`` vertex indices
     per part, of which a body counts those ``counted_parts`` ((B, P) bool;
     :func:`standing_counts`) and the others as missing. The size prior, weighted
@@ -249,7 +263,7 @@ def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: to
     sizes = torch.ones(len(vertices)) if sizes is None else sizes
     margins = PENETRATION_MARGIN + (torch.zeros(len(vertices)) if sinks is None else sinks)
     prior = size_prior(SCALES, size_weight, sizes[:, None])  # (B, 97)
-    sampled = torch.nonzero(scene_vertices).flatten()[::STRIDE]
+    sampled = sampled_vertices(scene_vertices)
     placed, carrying = vertices[:, sampled], carrying[sampled]
     counted = torch.ones(len(sampled)) if toes is None else ~toes[sampled]
     every_part = torch.cat(contact_parts) if contact_parts else torch.zeros(0, dtype=torch.long)

@@ -591,6 +591,15 @@ def test_scale_search_puts_feet_back_on_the_floor(body):
                                  _carrying(body), parts, scene, True,
                                  True, rho=0.05, max_angle_deg=45, max_distance=0.15)
     assert abs(float(scale) * 1.2 - 1.0) < 0.03
+    # It reads the normals only at normal_vertices (the fitter computes no others)
+    from prox_engine.scale_search import normal_vertices
+    read = normal_vertices(body.scene_vertices, parts)
+    assert len(read) < 0.5 * body.num_vertices
+    normals = torch.full_like(far, float("nan"))
+    normals[:, read] = vertex_normals(far, body.faces)[:, read]
+    again = best_scale(far, normals, body.scene_vertices, _carrying(body), parts, scene, True,
+                       True, rho=0.05, max_angle_deg=45, max_distance=0.15)
+    assert torch.equal(again[0], scale) and torch.equal(again[1], cost_far)
     # Its cost is that of the body fitted at the right size: the size prior (0.46 at
     # 1 / 1.2) only picks a scale, it does not make one start worse than another.
     _, cost = best_scale(camera[None], vertex_normals(camera[None], body.faces),
