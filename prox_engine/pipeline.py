@@ -358,8 +358,7 @@ class _Paths:
             if len(cs) == 1:
                 continue
             dropped = cs[1 - pick]
-            _charge(kept[i], "fresh_fit" if pick == 0 else "warm_fit", dropped.seconds,
-                    sum(dropped.stage_evaluations.values()))
+            _discard(kept[i], dropped, "fresh_fit" if pick == 0 else "warm_fit")
             if pick:  # a path that leaves the chain has a neighbour to leave it for
                 around = [f.vertices for f in [kept[i - 1] if i else self.before,
                                                *kept[i + 1:i + 2]] if f is not None]
@@ -394,8 +393,10 @@ def _leave_off_far_worse(candidates: list[FitResult], ratio: float) -> None:
     cannot pay for (seed 249's sofa sitter after a blurred frame: joints at their limits,
     3-8 times the fit from scratch's cost, 250 mm PJE against 46-75, and on the path for
     its little motion)."""
+    if ratio <= 0:
+        return
     values = [_image_cost(c) for c in candidates]
-    if ratio <= 0 or min(values) <= 0 or max(values) <= ratio * min(values):
+    if min(values) <= 0 or max(values) <= ratio * min(values):
         return
     worse = values.index(max(values))
     dropped = candidates.pop(worse)
@@ -404,8 +405,7 @@ def _leave_off_far_worse(candidates: list[FitResult], ratio: float) -> None:
         f"sequence: its {names[worse]} left off the path of least motion, its keypoints' "
         f"and posture's cost {values[worse]:.0f} over {ratio:g} times its "
         f"{names[1 - worse]}'s {values[1 - worse]:.0f}")
-    _charge(candidates[0], "warm_fit" if worse == 0 else "fresh_fit", dropped.seconds,
-            sum(dropped.stage_evaluations.values()))
+    _discard(candidates[0], dropped, "warm_fit" if worse == 0 else "fresh_fit")
 
 
 def _moved(fit: FitResult, around: list[torch.Tensor]) -> str:
@@ -579,9 +579,9 @@ def _charge_all(result: FitResult, original: FitResult) -> None:
         result.stage_evaluations[step] = result.stage_evaluations.get(step, 0.0) + count
 
 
-def _discard(kept: FitResult, dropped: FitResult) -> None:
-    """Charge ``kept`` with the cost of a fit of its frame that was not kept."""
-    _charge(kept, "discarded_fit", dropped.seconds, sum(dropped.stage_evaluations.values()))
+def _discard(kept: FitResult, dropped: FitResult, step: str = "discarded_fit") -> None:
+    """Charge ``kept`` with the cost of a fit of its frame that was not kept, as ``step``."""
+    _charge(kept, step, dropped.seconds, sum(dropped.stage_evaluations.values()))
 
 
 def refit_reason(config: FitConfig, error_px: float, anchor_px: float,

@@ -206,7 +206,6 @@ def carrying_vertices(contact_parts: dict[str, torch.Tensor], count: int) -> tor
     return part_vertices(contact_parts, CARRYING_PARTS, count)
 
 
-@torch.no_grad()
 def sampled_vertices(scene_vertices: torch.Tensor) -> torch.Tensor:
     """The vertices (indices) that :func:`best_scale` judges penetration and support on:
     every STRIDE-th of the ``scene_vertices`` ((V,) bool)."""
@@ -220,6 +219,7 @@ def normal_vertices(scene_vertices: torch.Tensor, contact_parts: list[torch.Tens
     return torch.unique(torch.cat([sampled_vertices(scene_vertices), *contact_parts]))
 
 
+@torch.no_grad()
 def best_scale(vertices: torch.Tensor, normals: torch.Tensor, scene_vertices: torch.Tensor,
                carrying: torch.Tensor, contact_parts: list[torch.Tensor], scene: Scene,
                use_contact: bool, use_penetration: bool, rho: float, max_angle_deg: float,
